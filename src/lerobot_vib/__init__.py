@@ -1,0 +1,21 @@
+"""lerobot-vib: uncertainty-aware imitation learning for LeRobot through a Variational Information
+Bottleneck. Importing this package registers `--policy.type=vib` with LeRobot."""
+
+from .configuration_vib import VIBConfig
+
+__all__ = ["VIBConfig", "VIBPolicy", "make_vib_pre_post_processors"]
+__version__ = "0.1.0"
+
+
+def __getattr__(name: str):
+    # The model and processors import torchvision and LeRobot's policy stack: load them on first use so that
+    # registering the config (what LeRobot's plugin discovery needs) stays cheap.
+    if name == "VIBPolicy":
+        from .modeling_vib import VIBPolicy
+
+        return VIBPolicy
+    if name == "make_vib_pre_post_processors":
+        from .processor_vib import make_vib_pre_post_processors
+
+        return make_vib_pre_post_processors
+    raise AttributeError(name)

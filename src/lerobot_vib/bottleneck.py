@@ -1,0 +1,72 @@
+"""The Variational Information Bottleneck on state tokens (paper Sec. III-B to III-D).
+
+Each of the K state tokens t_k (a slice of the fused observation feature) gets a diagonal Gaussian
+posterior p(z_k | s) = N(mu_k, diag(sigma_k^2)). The marginal m(z) = N(mu_m, diag(sigma_m^2)) is
+learnable and shared by all tokens. The *rate* of an observation is
+
+    R(s) = 1/K * sum_k sum_d KL( N(mu_kd, sigma_kd^2) || N(mu_m,d, sigma_m,d^2) )
+
+with the closed form, per latent dimension,
+
+    KL = 1/2 * [ log sigma_m^2 - log sigma^2 + (sigma^2 + (mu - mu_m)^2) / sigma_m^2 - 1 ].
+
+R needs the observation only, so it is available at run time as an epistemic-uncertainty score.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import torch
+from torch import Tensor, nn
+
+# Why clamp: exp(logvar) overflows or underflows for untrained or adversarial inputs, which would
+# turn the rate (a safety signal) into inf/NaN for reasons unrelated to the observation.
+LOGVAR_MIN = -10.0
+LOGVAR_MAX = 6.0
+
+
+@dataclass
+class Posterior:
+    """Per-token Gaussian posterior parameters, each of shape (B, K, D)."""
+
+    mean: Tensor
+    logvar: Tensor
+
+    def sample(self) -> Tensor:
+        """Reparameterized sample z = mu + sigma * eps."""
+        return self.mean + torch.exp(0.5 * self.logvar) * torch.randn_like(self.mean)
+
+
+def gaussian_kl(mean: Tensor, logvar: Tensor, prior_mean: Tensor, prior_logvar: Tensor) -> Tensor:
+    """Element-wise KL(N(mean, exp(logvar)) || N(prior_mean, exp(prior_logvar))), broadcasting."""
+    return 0.5 * (
+        prior_logvar - logvar + (torch.exp(logvar) + (mean - prior_mean) ** 2) * torch.exp(-prior_logvar) - 1.0
+    )
+
+
+class GaussianBottleneck(nn.Module):
+    """Posterior head for K state tokens plus the learnable marginal; computes the rate per sample.
+
+    Args:
+        d_token: size of one state token (the slice of the fused feature it sees).
+        latent_dim: size D of each token's latent z_k.
+    """
+
+    def __init__(self, d_token: int, latent_dim: int):
+        super().__init__()
+        self.latent_dim = latent_dim
+        # One head shared by all tokens: tokens differ by the slice of the fused feature they carry.
+        self.posterior_head = nn.Linear(d_token, 2 * latent_dim)
+        self.marginal_mean = nn.Parameter(torch.zeros(latent_dim))
+        self.marginal_logvar = nn.Parameter(torch.zeros(latent_dim))
+
+    def posterior(self, tokens: Tensor) -> Posterior:
+        """tokens: (B, K, d_token) -> Posterior with (B, K, latent_dim) mean and log-variance."""
+        mean, logvar = self.posterior_head(tokens).chunk(2, dim=-1)
+        return Posterior(mean=mean, logvar=logvar.clamp(LOGVAR_MIN, LOGVAR_MAX))
+
+    def rate(self, posterior: Posterior) -> Tensor:
+        """R per sample, shape (B,): KL summed over latent dims, averaged over tokens."""
+        kl = gaussian_kl(posterior.mean, posterior.logvar, self.marginal_mean, self.marginal_logvar)
+        return kl.sum(dim=-1).mean(dim=-1)

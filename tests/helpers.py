@@ -1,0 +1,54 @@
+"""Small builders shared by the tests."""
+
+from __future__ import annotations
+
+import torch
+from lerobot.configs.types import FeatureType, PolicyFeature
+
+from lerobot_vib.configuration_vib import VIBConfig
+
+SMALL = dict(
+    chunk_size=6,
+    n_action_steps=6,
+    n_state_tokens=4,
+    d_token=8,
+    latent_dim=4,
+    dim_model=32,
+    n_heads=4,
+    dim_feedforward=64,
+    n_layers=2,
+    mlp_hidden_dim=32,
+    spatial_softmax_num_keypoints=8,
+)
+
+
+def make_config(
+    cameras: dict[str, tuple[int, int, int]] | None = None,
+    state_dim: int | None = 5,
+    env_state_dim: int | None = None,
+    action_dim: int = 3,
+    **overrides,
+) -> VIBConfig:
+    """A small CPU VIBConfig; `cameras` maps a name to its (C, H, W) shape."""
+    cameras = {"top": (3, 32, 32)} if cameras is None else cameras
+    inputs = {f"observation.images.{k}": PolicyFeature(FeatureType.VISUAL, s) for k, s in cameras.items()}
+    if state_dim:
+        inputs["observation.state"] = PolicyFeature(FeatureType.STATE, (state_dim,))
+    if env_state_dim:
+        inputs["observation.environment_state"] = PolicyFeature(FeatureType.ENV, (env_state_dim,))
+    kwargs = {**SMALL, "device": "cpu", "pretrained_backbone_weights": None, **overrides}
+    return VIBConfig(
+        input_features=inputs,
+        output_features={"action": PolicyFeature(FeatureType.ACTION, (action_dim,))},
+        **kwargs,
+    )
+
+
+def make_batch(config: VIBConfig, batch_size: int = 2, with_action: bool = True, seed: int = 0) -> dict:
+    g = torch.Generator().manual_seed(seed)
+    batch = {key: torch.rand(batch_size, *ft.shape, generator=g) for key, ft in config.input_features.items()}
+    if with_action:
+        a_dim = config.action_feature.shape[0]
+        batch["action"] = torch.randn(batch_size, config.chunk_size, a_dim, generator=g)
+        batch["action_is_pad"] = torch.zeros(batch_size, config.chunk_size, dtype=torch.bool)
+    return batch

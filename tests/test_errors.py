@@ -1,0 +1,145 @@
+"""Bad configs, bad features and bad batches fail early with an error that names the problem."""
+
+import urllib.error
+
+import pytest
+import torch
+from lerobot.configs.types import FeatureType, PolicyFeature
+
+from helpers import make_batch, make_config
+from lerobot_vib.configuration_vib import VIBConfig
+from lerobot_vib.modeling_vib import VIBPolicy
+
+
+@pytest.mark.parametrize(
+    ("overrides", "message"),
+    [
+        (dict(n_action_steps=10, chunk_size=5), "n_action_steps"),
+        (dict(vision_backbone="vit_b_16"), "vision_backbone"),
+        (dict(image_pooling="max"), "image_pooling"),
+        (dict(position_embedding="rotary"), "position_embedding"),
+        (dict(n_obs_steps=2), "n_obs_steps"),
+        (dict(n_state_tokens=0), "n_state_tokens"),
+        (dict(dim_model=30, n_heads=4), "divisible"),
+        (dict(beta=-1.0), "beta"),
+    ],
+)
+def test_bad_config_values(overrides, message):
+    with pytest.raises(ValueError, match=message):
+        make_config(**overrides)
+
+
+def test_no_camera_and_no_state():
+    config = make_config(cameras={}, state_dim=None)
+    with pytest.raises(ValueError, match="at least one camera"):
+        VIBPolicy(config)
+
+
+def test_cameras_of_different_shapes():
+    config = make_config(cameras={"top": (3, 32, 32), "wrist": (3, 24, 32)})
+    with pytest.raises(ValueError, match=r"same .* shape.*top.*wrist"):
+        VIBPolicy(config)
+
+
+def test_no_action_output():
+    config = make_config()
+    config.output_features = {}
+    with pytest.raises(ValueError, match="`action` output"):
+        VIBPolicy(config)
+
+
+def test_state_under_another_name():
+    config = VIBConfig(
+        device="cpu",
+        input_features={"observation.joints": PolicyFeature(FeatureType.STATE, (5,))},
+        output_features={"action": PolicyFeature(FeatureType.ACTION, (3,))},
+    )
+    with pytest.raises(ValueError, match="rename_map"):
+        config.validate_features()
+
+
+@pytest.fixture(scope="module")
+def policy():
+    return VIBPolicy(make_config(cameras={"top": (3, 32, 32)}, state_dim=5))
+
+
+def test_missing_camera_in_observation(policy):
+    obs = make_batch(policy.config, with_action=False)
+    del obs["observation.images.top"]
+    with pytest.raises(KeyError, match=r"observation\.images\.top"):
+        policy.select_action(obs)
+
+
+def test_wrong_image_shape(policy):
+    obs = make_batch(policy.config, with_action=False)
+    obs["observation.images.top"] = torch.rand(2, 3, 64, 64)
+    with pytest.raises(ValueError, match=r"observation.images.top.*\(2, 3, 64, 64\).*\(batch, 3, 32, 32\)"):
+        policy.predict_action_chunk(obs)
+
+
+def test_unbatched_state(policy):
+    obs = make_batch(policy.config, with_action=False)
+    obs["observation.state"] = torch.rand(5)
+    with pytest.raises(ValueError, match=r"observation\.state"):
+        policy.predict_action_chunk(obs)
+
+
+def test_mismatched_batch_sizes(policy):
+    obs = make_batch(policy.config, with_action=False)
+    obs["observation.state"] = torch.rand(3, 5)
+    with pytest.raises(ValueError, match="batch size"):
+        policy.predict_action_chunk(obs)
+
+
+def test_training_batch_without_action(policy):
+    batch = make_batch(policy.config)
+    del batch["action"]
+    with pytest.raises(KeyError, match="action"):
+        policy.forward(batch)
+
+
+def test_training_batch_with_wrong_chunk_length(policy):
+    batch = make_batch(policy.config)
+    batch["action"] = batch["action"][:, :3]
+    with pytest.raises(ValueError, match="chunk_size"):
+        policy.forward(batch)
+
+
+@pytest.mark.parametrize("key", ["observation.images.top", "observation.state", "action"])
+def test_training_batch_with_nan(policy, key):
+    batch = make_batch(policy.config)
+    batch[key].view(-1)[0] = float("nan")
+    with pytest.raises(ValueError, match=f"non-finite.*{key}"):
+        policy.forward(batch)
+
+
+def test_bad_reduction(policy):
+    with pytest.raises(ValueError, match="reduction"):
+        policy.forward(make_batch(policy.config), reduction="sum")
+
+
+def test_offline_imagenet_weights_error_names_the_fix(monkeypatch):
+    def offline(*args, **kwargs):
+        raise urllib.error.URLError("no network")
+
+    monkeypatch.setattr(torch.hub, "load_state_dict_from_url", offline)
+    config = make_config(pretrained_backbone_weights="ResNet18_Weights.IMAGENET1K_V1")
+    with pytest.raises(RuntimeError, match=r"--policy.pretrained_backbone_weights=null"):
+        VIBPolicy(config)
+
+
+def test_from_pretrained_does_not_fetch_imagenet_weights(monkeypatch, tmp_path):
+    """The checkpoint holds the trained backbone: loading it must work offline with the ImageNet default."""
+    config = make_config()
+    policy = VIBPolicy(config).eval()
+    policy.config.pretrained_backbone_weights = "ResNet18_Weights.IMAGENET1K_V1"
+    policy.save_pretrained(tmp_path)
+
+    def offline(*args, **kwargs):
+        raise urllib.error.URLError("no network")
+
+    monkeypatch.setattr(torch.hub, "load_state_dict_from_url", offline)
+    loaded = VIBPolicy.from_pretrained(tmp_path)
+    assert loaded.config.pretrained_backbone_weights == "ResNet18_Weights.IMAGENET1K_V1"
+    obs = make_batch(config, with_action=False)
+    torch.testing.assert_close(loaded.predict_action_chunk(obs), policy.predict_action_chunk(obs))

@@ -1,0 +1,235 @@
+"""VIB through LeRobot's own entry points: plugin discovery, lerobot-train, from_pretrained, lerobot-eval,
+multi-process training and the files a Hub push would upload."""
+
+from __future__ import annotations
+
+import json
+import os
+import subprocess
+import sys
+import textwrap
+from pathlib import Path
+
+import pytest
+import torch
+from lerobot.datasets.lerobot_dataset import LeRobotDataset
+from lerobot.policies.factory import make_pre_post_processors
+from safetensors.torch import load_file
+
+from helpers import make_batch, make_config
+from lerobot_vib.modeling_vib import VIBPolicy
+from tiny_dataset import write_tiny_dataset
+
+BIN = Path(sys.executable).parent
+# Small enough for a CPU: a handful of steps at batch 2.
+TRAIN_ARGS = [
+    "--policy.type=vib",
+    "--policy.device=cpu",
+    "--policy.push_to_hub=false",
+    "--policy.pretrained_backbone_weights=null",
+    "--policy.chunk_size=8",
+    "--policy.n_action_steps=8",
+    "--policy.dim_model=64",
+    "--policy.dim_feedforward=128",
+    "--policy.n_layers=2",
+    "--wandb.enable=false",
+    "--num_workers=0",
+    "--batch_size=2",
+    "--log_freq=1",
+]
+
+
+def run(cmd: list[str], timeout: int = 600, **kwargs) -> str:
+    env = {**os.environ, "MUJOCO_GL": "egl", "HF_HUB_OFFLINE": "1"}
+    proc = subprocess.run(cmd, capture_output=True, text=True, timeout=timeout, env=env, **kwargs)
+    out = proc.stdout + proc.stderr
+    assert proc.returncode == 0, f"{cmd[0]} failed ({proc.returncode}):\n{out[-6000:]}"
+    return out
+
+
+@pytest.fixture(scope="module")
+def aloha_like_dataset(tmp_path_factory) -> Path:
+    """gym-aloha's features: one 480x640 `top` camera, 14-d state and action."""
+    root = tmp_path_factory.mktemp("aloha_like") / "ds"
+    write_tiny_dataset(
+        root, repo_id="local/aloha_like", cameras={"top": (480, 640)}, n_episodes=1, frames_per_episode=16
+    )
+    return root
+
+
+@pytest.fixture(scope="module")
+def trained(aloha_like_dataset, tmp_path_factory) -> tuple[Path, str]:
+    """A lerobot-train run of 3 steps; returns (checkpoint dir, its log)."""
+    out_dir = tmp_path_factory.mktemp("train") / "run"
+    log = run(
+        [
+            str(BIN / "lerobot-train"),
+            *TRAIN_ARGS,
+            "--dataset.repo_id=local/aloha_like",
+            f"--dataset.root={aloha_like_dataset}",
+            "--steps=3",
+            "--save_freq=3",
+            f"--output_dir={out_dir}",
+        ]
+    )
+    return out_dir / "checkpoints" / "last" / "pretrained_model", log
+
+
+def test_plugin_is_discovered_in_a_fresh_process():
+    code = textwrap.dedent(
+        """
+        import torch
+        from lerobot.configs.policies import PreTrainedConfig
+        from lerobot.configs.types import FeatureType, PolicyFeature
+        from lerobot.policies.factory import get_policy_class, make_policy_config, make_pre_post_processors
+        from lerobot.processor import NormalizerProcessorStep, UnnormalizerProcessorStep
+        from lerobot.utils.import_utils import register_third_party_plugins
+
+        assert "vib" not in PreTrainedConfig.get_known_choices(), "vib registered before discovery"
+        register_third_party_plugins()
+        cls = get_policy_class("vib")
+        from lerobot_vib.modeling_vib import VIBPolicy
+        assert cls is VIBPolicy, cls
+        cfg = make_policy_config(
+            "vib", device="cpu",
+            input_features={"observation.state": PolicyFeature(FeatureType.STATE, (4,))},
+            output_features={"action": PolicyFeature(FeatureType.ACTION, (2,))},
+        )
+        stats = {"observation.state": {"mean": torch.zeros(4), "std": torch.ones(4)},
+                 "action": {"mean": torch.zeros(2), "std": torch.ones(2)}}
+        pre, post = make_pre_post_processors(cfg, dataset_stats=stats)
+        assert any(isinstance(s, NormalizerProcessorStep) for s in pre.steps), pre.steps
+        assert any(isinstance(s, UnnormalizerProcessorStep) for s in post.steps), post.steps
+        print("OK", cls.__module__)
+        """
+    )
+    out = run([sys.executable, "-c", code])
+    assert "OK lerobot_vib.modeling_vib" in out
+
+
+def test_lerobot_train_logs_l1_and_rate(trained):
+    _, log = trained
+    assert "l1_loss:" in log and "rate:" in log
+
+
+def test_from_pretrained_loads_every_tensor_of_the_checkpoint(trained, aloha_like_dataset):
+    ckpt, _ = trained
+    loaded = VIBPolicy.from_pretrained(ckpt, strict=True)  # strict: a missing or extra key fails
+    assert not loaded.training
+    saved = load_file(ckpt / "model.safetensors")
+    state = loaded.state_dict()
+    assert set(saved) == set(state)
+    for key, value in saved.items():
+        assert torch.equal(state[key], value), key
+
+    # The checkpoint's own processors normalize a dataset frame; the policy acts on it.
+    pre, post = make_pre_post_processors(loaded.config, pretrained_path=str(ckpt))
+    frame = LeRobotDataset("local/aloha_like", root=aloha_like_dataset)[0]
+    obs = pre({k: v for k, v in frame.items() if k.startswith("observation")})
+    action = post(loaded.select_action(obs))
+    assert action.shape == (1, 14) and torch.isfinite(action).all()
+
+
+def test_save_then_from_pretrained_gives_identical_actions(tmp_path):
+    """Train a few steps in process, then compare the trained policy with its reloaded copy."""
+    config = make_config(cameras={"top": (3, 32, 32), "wrist": (3, 32, 32)})
+    policy = VIBPolicy(config)
+    optimizer = torch.optim.AdamW(policy.get_optim_params(), lr=1e-3)
+    policy.train()
+    for step in range(3):
+        loss, _ = policy.forward(make_batch(config, batch_size=4, seed=step))
+        optimizer.zero_grad()
+        loss.backward()
+        optimizer.step()
+    policy.eval()
+    obs = make_batch(config, batch_size=3, with_action=False, seed=99)
+    expected = policy.predict_action_chunk(obs)
+    expected_rate = policy.last_rate
+
+    policy.save_pretrained(tmp_path)
+    loaded = VIBPolicy.from_pretrained(tmp_path, strict=True)
+    assert torch.equal(loaded.predict_action_chunk(obs), expected)
+    assert torch.equal(loaded.last_rate, expected_rate)
+    assert not torch.equal(VIBPolicy(config).eval().predict_action_chunk(obs), expected)  # the test can fail
+
+
+def test_lerobot_eval_runs_an_aloha_episode(trained, tmp_path):
+    ckpt, _ = trained
+    out = tmp_path / "eval"
+    run(
+        [
+            str(BIN / "lerobot-eval"),
+            f"--policy.path={ckpt}",
+            "--policy.device=cpu",
+            "--env.type=aloha",
+            "--env.task=AlohaTransferCube-v0",
+            "--env.episode_length=6",
+            "--eval.n_episodes=1",
+            "--eval.batch_size=1",
+            f"--output_dir={out}",
+        ]
+    )
+    info = json.loads((out / "eval_info.json").read_text())
+    assert info["overall"]["n_episodes"] == 1
+
+
+def test_two_process_ddp_training(tiny_dataset_root, tmp_path):
+    """LeRobot's multi-process path (Accelerate on a torchrun launch, gloo on CPU) trains VIB."""
+    out_dir = tmp_path / "ddp"
+    log = run(
+        [
+            str(BIN / "torchrun"),
+            "--nproc_per_node=2",
+            str(BIN / "lerobot-train"),
+            *TRAIN_ARGS,
+            "--dataset.repo_id=local/tiny",
+            f"--dataset.root={tiny_dataset_root}",
+            "--steps=2",
+            "--save_freq=2",
+            f"--output_dir={out_dir}",
+        ]
+    )
+    assert "Effective batch size: 2 x 2 = 4" in log
+    assert (out_dir / "checkpoints" / "last" / "pretrained_model" / "model.safetensors").exists()
+
+
+def test_hub_push_uploads_weights_config_processors_and_a_model_card(trained, monkeypatch):
+    """Offline: intercept the Hub client and check the folder LeRobot would upload."""
+    from huggingface_hub import HfApi, ModelCard
+    from lerobot.configs.train import TrainPipelineConfig
+
+    ckpt, _ = trained
+    uploads: list[dict[str, str]] = []
+
+    class Repo:
+        repo_id = "user/vib_test"
+
+    def fake_upload_folder(self, *, folder_path, **kwargs):
+        files = {p.name: p for p in Path(folder_path).iterdir() if p.is_file()}
+        uploads.append({name: (p.read_text() if p.suffix in (".md", ".json") else "") for name, p in files.items()})
+
+        class Info:
+            class repo_url:  # noqa: N801
+                url = "https://huggingface.co/user/vib_test"
+
+        return Info()
+
+    monkeypatch.setattr(HfApi, "create_repo", lambda self, *a, **k: Repo())
+    monkeypatch.setattr(HfApi, "upload_folder", fake_upload_folder)
+    monkeypatch.setattr(ModelCard, "validate", lambda self, *a, **k: None)  # validation is an online call
+
+    policy = VIBPolicy.from_pretrained(ckpt)
+    policy.config.repo_id = "user/vib_test"
+    cfg = TrainPipelineConfig.from_pretrained(ckpt)
+    policy.push_model_to_hub(cfg)
+    pre, post = make_pre_post_processors(policy.config, pretrained_path=str(ckpt))
+    pre.push_to_hub("user/vib_test")
+    post.push_to_hub("user/vib_test")
+
+    model_files = uploads[0]
+    assert {"model.safetensors", "config.json", "train_config.json", "README.md"} <= set(model_files)
+    assert json.loads(model_files["config.json"])["type"] == "vib"
+    card = model_files["README.md"]
+    assert "vib" in card and "pip install lerobot_policy_vib" in card and "Information Bottleneck" in card
+    processor_files = set(uploads[1]) | set(uploads[2])
+    assert {"policy_preprocessor.json", "policy_postprocessor.json"} <= processor_files
