@@ -145,7 +145,8 @@ def main() -> None:
             f"**{v['latency_ms'] / a['latency_ms']:.2f}x** |"
         )
     header = (
-        f"Machine: {machine(args.device)}; torch {torch.__version__}; device {args.device}; chunk_size {args.chunk_size}; "
+        f"Machine: {machine(args.device)}; torch {torch.__version__}; device {args.device}; "
+        f"chunk_size {args.chunk_size}; "
         f"train batch {args.batch_size}; median of {args.train_repeats} train steps and "
         f"{args.latency_repeats} select_action calls after {args.warmup} warm-up calls.\n"
         f"Command: python benchmarks/bench_policy.py {' '.join(sys.argv[1:])}\n"
@@ -156,6 +157,7 @@ def main() -> None:
     if args.output:
         args.output.parent.mkdir(parents=True, exist_ok=True)
         args.output.write_text(table)
+
 
 if __name__ == "__main__":
     main()

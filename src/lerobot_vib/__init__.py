@@ -2,6 +2,7 @@
 Bottleneck. Importing this package registers `--policy.type=vib` with LeRobot."""
 
 from .configuration_vib import VIBConfig
+from .sim import env_config as _env_config  # noqa: F401  (registers --env.type=aloha_fast)
 
 __all__ = ["VIBConfig", "VIBPolicy", "make_vib_pre_post_processors"]
 __version__ = "0.1.0"

@@ -1,0 +1,1 @@
+"""Console entry points, in LeRobot's CLI style (draccus `--key=value`)."""

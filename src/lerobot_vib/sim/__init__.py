@@ -1,0 +1,1 @@
+"""ALOHA simulation: selective-rendering tasks and env, scripted demonstrations, the dataset recorder."""
