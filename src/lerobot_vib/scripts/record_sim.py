@@ -95,7 +95,11 @@ def record_sim(cfg: RecordSimConfig) -> None:
 
 
 def main() -> None:
-    os.environ.setdefault("MUJOCO_GL", "egl")
+    os.environ.setdefault("MUJOCO_GL", "egl")  # off-screen rendering; works on CPU-only machines (Mesa)
+    os.environ.setdefault("SVT_LOG", "1")  # the AV1 encoder prints its whole configuration per episode
+    import datasets
+
+    datasets.disable_progress_bars()  # one progress bar per saved episode otherwise
     logging.basicConfig(level=logging.INFO, format="%(levelname)s %(message)s")
     record_sim()
 
