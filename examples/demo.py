@@ -2,7 +2,10 @@
 
 1. record a small scripted ALOHA transfer-cube dataset (`lerobot-vib-record-sim`, 120x160, no Hub),
 2. train VIB on it (`lerobot-train --policy.type=vib`),
-3. roll the checkpoint out in the fast gym-aloha env (`lerobot-eval --env.type=aloha_fast`).
+3. calibrate its uncertainty on the training episodes (`lerobot-vib-calibrate`),
+4. roll the checkpoint out in the fast gym-aloha env (`lerobot-eval --env.type=aloha_fast`),
+5. trace u step by step in a rollout with an occlusion and the safety stop on
+   (`examples/rollout_uncertainty.py`: trace.csv, summary.json, trace.png).
 
 Each command is printed before it runs; outputs go to outputs/demo/. A CPU run of the defaults takes minutes
 and is far too short to solve the task: it shows the pipeline, not a result. For a real run use 50 episodes,
@@ -77,9 +80,18 @@ def main() -> None:
         ]
     )
 
+    ckpt = train_dir / "checkpoints" / "last" / "pretrained_model"
+    run(
+        [
+            str(BIN / "lerobot-vib-calibrate"),
+            f"--policy.path={ckpt}",
+            f"--dataset.repo_id={REPO_ID}",
+            f"--dataset.root={data}",
+        ]
+    )
+
     eval_dir = args.out / "eval"
     shutil.rmtree(eval_dir, ignore_errors=True)
-    ckpt = train_dir / "checkpoints" / "last" / "pretrained_model"
     run(
         [
             str(BIN / "lerobot-eval"),

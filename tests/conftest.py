@@ -18,3 +18,23 @@ def tiny_dataset_root(tmp_path_factory) -> Path:
     root = tmp_path_factory.mktemp("data") / "tiny"
     write_tiny_dataset(root, repo_id="local/tiny")
     return root
+
+
+@pytest.fixture(scope="session")
+def tiny_checkpoint(tiny_dataset_root, tmp_path_factory) -> Path:
+    """A VIB checkpoint from a 2-step lerobot-train run on the tiny dataset."""
+    from test_lerobot_integration import BIN, TRAIN_ARGS, run
+
+    out = tmp_path_factory.mktemp("tiny_train") / "run"
+    run(
+        [
+            str(BIN / "lerobot-train"),
+            *TRAIN_ARGS,
+            "--dataset.repo_id=local/tiny",
+            f"--dataset.root={tiny_dataset_root}",
+            "--steps=2",
+            "--save_freq=2",
+            f"--output_dir={out}",
+        ]
+    )
+    return out / "checkpoints" / "last" / "pretrained_model"

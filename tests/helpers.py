@@ -52,3 +52,14 @@ def make_batch(config: VIBConfig, batch_size: int = 2, with_action: bool = True,
         batch["action"] = torch.randn(batch_size, config.chunk_size, a_dim, generator=g)
         batch["action_is_pad"] = torch.zeros(batch_size, config.chunk_size, dtype=torch.bool)
     return batch
+
+
+def with_rate_statistics(policy, batch: dict | None = None):
+    """Give a fresh policy the running rate statistics training would leave, from one batch in eval mode."""
+    import torch
+
+    batch = make_batch(policy.config, batch_size=8, with_action=False, seed=123) if batch is None else batch
+    with torch.no_grad():
+        _, rate = policy.eval()._encode(batch)
+    policy.rate_tracker.update(rate)
+    return policy

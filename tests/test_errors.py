@@ -6,7 +6,7 @@ import pytest
 import torch
 from lerobot.configs.types import FeatureType, PolicyFeature
 
-from helpers import make_batch, make_config
+from helpers import make_batch, make_config, with_rate_statistics
 from lerobot_vib.configuration_vib import VIBConfig
 from lerobot_vib.modeling_vib import VIBPolicy
 
@@ -60,21 +60,26 @@ def test_state_under_another_name():
 
 @pytest.fixture(scope="module")
 def policy():
-    return VIBPolicy(make_config(cameras={"top": (3, 32, 32)}, state_dim=5))
+    return with_rate_statistics(VIBPolicy(make_config(cameras={"top": (3, 32, 32)}, state_dim=5)))
 
 
-def test_missing_camera_in_observation(policy):
+def test_missing_camera_in_observation_fails_before_any_action(policy):
     obs = make_batch(policy.config, with_action=False)
     del obs["observation.images.top"]
+    policy.reset()
     with pytest.raises(KeyError, match=r"observation\.images\.top"):
         policy.select_action(obs)
+    assert policy.last_step is None and policy._last_command is None
 
 
-def test_wrong_image_shape(policy):
+def test_wrong_image_shape_fails_before_any_action(policy):
     obs = make_batch(policy.config, with_action=False)
     obs["observation.images.top"] = torch.rand(2, 3, 64, 64)
-    with pytest.raises(ValueError, match=r"observation.images.top.*\(2, 3, 64, 64\).*\(batch, 3, 32, 32\)"):
-        policy.predict_action_chunk(obs)
+    policy.reset()
+    for call in (policy.select_action, policy.predict_action_chunk):
+        with pytest.raises(ValueError, match=r"observation.images.top.*\(2, 3, 64, 64\).*\(batch, 3, 32, 32\)"):
+            call(obs)
+    assert policy.last_step is None and policy._last_command is None
 
 
 def test_unbatched_state(policy):

@@ -176,6 +176,10 @@ def test_lerobot_eval_runs_on_the_fast_env(recorded, tmp_path):
             "--env.episode_length=5",
             "--eval.n_episodes=1",
             "--eval.batch_size=1",
+            # run-time options as overrides of the checkpoint's config
+            "--policy.temporal_ensemble=uncertainty",
+            "--policy.n_action_steps=1",
+            "--policy.safety.enabled=true",
             f"--output_dir={tmp_path / 'eval'}",
         ]
     )

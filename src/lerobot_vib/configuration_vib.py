@@ -10,6 +10,85 @@ from lerobot.utils.constants import ACTION, OBS_STATE
 
 IMAGE_POOLINGS = ("spatial_softmax", "avg")
 POSITION_EMBEDDINGS = ("learned", "sinusoidal")
+TEMPORAL_ENSEMBLES = ("none", "act", "uncertainty")
+SAFETY_ACTIONS = ("hold", "home")
+
+
+@dataclass
+class SafetyConfig:
+    """The safety stop (paper Sec. III-E, Fig. 3c), run inside `select_action`.
+
+    RUN -> STOP when u > gamma (only if `enabled`) or, always, when u, the observation or the predicted
+    action is not finite: unknown means stop. STOP -> RUN once u < `resume_threshold` for `resume_steps`
+    consecutive steps; the action queue and ensembles are then cleared. While stopped the policy emits
+    the safety action.
+
+    Args:
+        enabled: Stop when u exceeds gamma. Non-finite values stop the policy even when this is false.
+        gamma: Stop threshold on u = R / R_bar. None: the calibrated threshold (`lerobot-vib-calibrate`),
+            else 1 + 2 * std(R) / mean(R) from the running statistics kept during training (paper: mean(u)
+            + 2 std(u); mean(u) = 1 by construction).
+        resume_threshold: u must stay below this to resume (hysteresis). None: gamma.
+        resume_steps: Consecutive steps below `resume_threshold` needed to resume.
+        action: "hold": repeat the last commanded action; "home": move to `home_pose`, changing each action
+            dimension by at most `home_max_step` per step.
+        home_pose: The home action in robot units (what the robot receives, after unnormalization).
+            Required for "home"; with "hold", used if the very first step is already stopped.
+        home_max_step: Largest change per step and action dimension on the way home, in robot units
+            (e.g. radians per step), so that going home is never a jump.
+    """
+
+    enabled: bool = False
+    gamma: float | None = None
+    resume_threshold: float | None = None
+    resume_steps: int = 10
+    action: str = "hold"
+    home_pose: list[float] | None = None
+    home_max_step: float = 0.01
+
+    def __post_init__(self):
+        if self.action not in SAFETY_ACTIONS:
+            raise ValueError(f"`safety.action` must be one of {SAFETY_ACTIONS}, got {self.action!r}.")
+        if self.action == "home" and self.home_pose is None:
+            raise ValueError("`safety.action=home` needs `safety.home_pose` (the home action in robot units).")
+        if self.resume_steps < 1:
+            raise ValueError(f"`safety.resume_steps` must be >= 1, got {self.resume_steps}.")
+        if not self.home_max_step > 0:
+            raise ValueError(f"`safety.home_max_step` must be > 0, got {self.home_max_step}.")
+        for name in ("gamma", "resume_threshold"):
+            value = getattr(self, name)
+            if value is not None and not value > 0:
+                raise ValueError(f"`safety.{name}` must be a positive number, got {value}.")
+
+
+@dataclass
+class CalibrationConfig:
+    """Rate statistics over a dataset, written by `lerobot-vib-calibrate` (empty after training, when the
+    running statistics kept during training are used instead).
+
+    Args:
+        dataset_repo_id: The dataset the statistics were computed on.
+        episodes: Its episodes used for R_bar (all if None).
+        n_frames: Number of frames they hold.
+        rate_mean: R_bar, the mean rate: u = R / R_bar.
+        rate_std: Standard deviation of the rate over those frames.
+        rate_quantiles: Quantiles of the rate, keyed by level ("0.5", "0.9", ...).
+        gamma: The calibrated stop threshold on u.
+        gamma_method: "mean_plus_2std" (paper) or "conformal".
+        conformal_alpha: Target per-episode false-stop rate of the conformal threshold.
+        conformal_episodes: The held-out episodes the conformal threshold was computed on.
+    """
+
+    dataset_repo_id: str | None = None
+    episodes: list[int] | None = None
+    n_frames: int = 0
+    rate_mean: float | None = None
+    rate_std: float | None = None
+    rate_quantiles: dict[str, float] = field(default_factory=dict)
+    gamma: float | None = None
+    gamma_method: str | None = None
+    conformal_alpha: float | None = None
+    conformal_episodes: list[int] | None = None
 
 
 @PreTrainedConfig.register_subclass("vib")
@@ -63,6 +142,19 @@ class VIBConfig(PreTrainedConfig):
             [state tokens; action queries].
         dropout: Dropout in the transformer layers.
         beta: Weight of the rate in the loss, L = L1 + beta * mean(R) (paper Eq. 5; Table II: 1e-4 best).
+        rate_momentum: Momentum of the running mean and second moment of the rate kept during training
+            (buffers saved with the model), which give R_bar until `lerobot-vib-calibrate` replaces it.
+        temporal_ensemble: How `select_action` turns chunks into one action. "none": ACT's action queue
+            of `n_action_steps`; "act": ACT's temporal ensembling, w_j ∝ exp(-m * j); "uncertainty": the
+            paper's Eq. 6, w_j ∝ exp(-m * u_j * j), j = 0 the oldest chunk's candidate and u_j the normalized
+            rate of the pass that produced it. Ensembling needs `n_action_steps=1`.
+        temporal_ensemble_coeff: m in the ensembling weights (ACT's 0.01).
+        uncertainty_every_step: Encode every step's observation for its rate, even while actions come from
+            the queue (what the safety stop and per-step traces need). False: with the action queue, encode
+            only when a chunk is planned, as ACT (much cheaper per step); u and the threshold stop then
+            update only at those steps. Non-finite observations stop the policy either way.
+        safety: The safety stop (see `SafetyConfig`), e.g. `--policy.safety.enabled=true`.
+        calibration: Rate statistics written by `lerobot-vib-calibrate` (see `CalibrationConfig`).
         optimizer_lr: AdamW learning rate (ACT's preset).
         optimizer_weight_decay: AdamW weight decay (ACT's preset).
         optimizer_lr_backbone: Learning rate of the ResNet trunk (ACT's preset).
@@ -106,6 +198,14 @@ class VIBConfig(PreTrainedConfig):
 
     # Loss.
     beta: float = 1e-4
+    rate_momentum: float = 0.01
+
+    # Run time: ensembling, safety stop, calibration.
+    temporal_ensemble: str = "none"
+    temporal_ensemble_coeff: float = 0.01
+    uncertainty_every_step: bool = True
+    safety: SafetyConfig = field(default_factory=SafetyConfig)
+    calibration: CalibrationConfig = field(default_factory=CalibrationConfig)
 
     # Training preset (ACT's).
     optimizer_lr: float = 1e-5
@@ -136,6 +236,17 @@ class VIBConfig(PreTrainedConfig):
             raise ValueError(f"`dim_model` ({self.dim_model}) must be divisible by `n_heads` ({self.n_heads}).")
         if self.beta < 0:
             raise ValueError(f"`beta` must be >= 0, got {self.beta}.")
+        if not 0 < self.rate_momentum <= 1:
+            raise ValueError(f"`rate_momentum` must be in (0, 1], got {self.rate_momentum}.")
+        if self.temporal_ensemble not in TEMPORAL_ENSEMBLES:
+            raise ValueError(
+                f"`temporal_ensemble` must be one of {TEMPORAL_ENSEMBLES}, got {self.temporal_ensemble!r}."
+            )
+        if self.temporal_ensemble != "none" and self.n_action_steps != 1:
+            raise ValueError(
+                f"`temporal_ensemble={self.temporal_ensemble}` needs `n_action_steps=1`: the policy must be "
+                f"queried every step to ensemble (got n_action_steps={self.n_action_steps})."
+            )
 
     def get_optimizer_preset(self) -> AdamWConfig:
         return AdamWConfig(lr=self.optimizer_lr, weight_decay=self.optimizer_weight_decay)
@@ -149,6 +260,11 @@ class VIBConfig(PreTrainedConfig):
             raise ValueError(f"VIB needs an `{ACTION}` output feature; got outputs {list(self.output_features or {})}.")
         if len(self.action_feature.shape) != 1:
             raise ValueError(f"`{ACTION}` must be a vector, got shape {tuple(self.action_feature.shape)}.")
+        home = self.safety.home_pose
+        if home is not None and len(home) != self.action_feature.shape[0]:
+            raise ValueError(
+                f"`safety.home_pose` has {len(home)} values, the action has {self.action_feature.shape[0]}."
+            )
         state_keys = [
             k for k, ft in (self.input_features or {}).items() if ft.type is FeatureType.STATE and k != OBS_STATE
         ]

@@ -17,6 +17,7 @@ from __future__ import annotations
 import contextlib
 import contextvars
 import logging
+import math
 from collections import deque
 from collections.abc import Iterator
 from dataclasses import dataclass
@@ -28,7 +29,7 @@ import torch
 import torch.nn.functional as F
 import torchvision
 from huggingface_hub import ModelCard
-from lerobot.policies.act.modeling_act import ACTEncoder, create_sinusoidal_pos_embedding
+from lerobot.policies.act.modeling_act import ACTEncoder, ACTTemporalEnsembler, create_sinusoidal_pos_embedding
 from lerobot.policies.diffusion.modeling_diffusion import SpatialSoftmax
 from lerobot.policies.pretrained import PreTrainedPolicy
 from lerobot.utils.constants import ACTION, OBS_ENV_STATE, OBS_STATE
@@ -37,7 +38,10 @@ from torchvision.models._utils import IntermediateLayerGetter
 from torchvision.ops.misc import FrozenBatchNorm2d
 
 from .bottleneck import GaussianBottleneck, Posterior
+from .calibration import RateTracker, mean_plus_2std_gamma
 from .configuration_vib import VIBConfig
+from .ensembling import UncertaintyWeightedEnsembler
+from .safety import RobotUnits, SafetyAction, SafetyMonitor
 
 logger = logging.getLogger(__name__)
 
@@ -183,6 +187,30 @@ class VIBOutput:
     rate: Tensor  # (B,)
 
 
+@dataclass
+class UncertaintyStep:
+    """What `select_action` measured and decided at one step, per batch element."""
+
+    rate: Tensor  # (B,) R of this step's observation
+    u: Tensor  # (B,) R / R_bar
+    gamma: float  # the stop threshold on u (reported even when the threshold stop is disabled)
+    threshold_active: bool  # whether u > gamma stops the policy (`safety.enabled`)
+    stopped: Tensor  # (B,) bool: the safety action was emitted
+    just_stopped: Tensor  # (B,) bool: RUN -> STOP at this step
+    resumed: Tensor  # (B,) bool: STOP -> RUN at this step
+
+    def row(self, i: int = 0) -> dict[str, float | bool]:
+        """Batch element i as plain numbers (for traces)."""
+        return {
+            "rate": float(self.rate[i]),
+            "u": float(self.u[i]),
+            "gamma": self.gamma,
+            "stopped": bool(self.stopped[i]),
+            "just_stopped": bool(self.just_stopped[i]),
+            "resumed": bool(self.resumed[i]),
+        }
+
+
 class VIB(nn.Module):
     """The network: encoder, bottleneck (posterior heads + marginal), decoder."""
 
@@ -225,7 +253,13 @@ class VIBPolicy(PreTrainedPolicy):
         if ignored := sorted(set(config.input_features) - set(self._used_inputs)):
             logger.warning("VIB ignores these input features: %s", ignored)
         self.model = VIB(config)
+        self.rate_tracker = RateTracker(config.rate_momentum)
+        units_features = {ACTION: config.action_feature}
+        if config.robot_state_feature:
+            units_features[OBS_STATE] = config.robot_state_feature
+        self.robot_units = RobotUnits(units_features, config.normalization_mapping, kwargs.get("dataset_stats"))
         self.last_rate: Tensor | None = None
+        self.last_step: UncertaintyStep | None = None
         self.reset()
 
     @classmethod
@@ -254,6 +288,46 @@ class VIBPolicy(PreTrainedPolicy):
     def reset(self) -> None:
         """Call whenever the environment is reset."""
         self._action_queue: deque[Tensor] = deque(maxlen=self.config.n_action_steps)
+        self._act_ensembler = ACTTemporalEnsembler(self.config.temporal_ensemble_coeff, self.config.chunk_size)
+        self._u_ensembler = UncertaintyWeightedEnsembler(self.config.temporal_ensemble_coeff, self.config.chunk_size)
+        self._monitor: SafetyMonitor | None = None  # built at the first step: thresholds may come from loaded buffers
+        self._last_command: Tensor | None = None
+        self.last_step = None
+
+    # ------------------------------------------------------------------------------------------- uncertainty
+
+    def rate_mean(self) -> float:
+        """R_bar: the calibrated mean rate if `lerobot-vib-calibrate` ran, else the running mean from training."""
+        calibrated = self.config.calibration.rate_mean
+        return calibrated if calibrated is not None else self.rate_tracker.mean
+
+    def stop_threshold(self) -> float:
+        """gamma: `safety.gamma`, else the calibrated threshold, else mean(u) + 2 std(u) from training."""
+        if self.config.safety.gamma is not None:
+            return self.config.safety.gamma
+        calibration = self.config.calibration
+        if calibration.gamma is not None:
+            return calibration.gamma
+        if calibration.rate_mean is not None and calibration.rate_std is not None:
+            return mean_plus_2std_gamma(calibration.rate_mean, calibration.rate_std)
+        return mean_plus_2std_gamma(self.rate_tracker.mean, self.rate_tracker.std)
+
+    def _start_episode(self) -> None:
+        r_bar = self.rate_mean()
+        if not (math.isfinite(r_bar) and r_bar > 0):
+            raise RuntimeError(
+                "This VIB policy has no rate statistics (R_bar), so its uncertainty u = R / R_bar is unknown and "
+                "every step would be a safety stop. Train it with lerobot-train (which keeps running statistics) "
+                "or run `lerobot-vib-calibrate` on its training data."
+            )
+        safety = self.config.safety
+        if safety.action == "home" or safety.home_pose is not None:
+            self.robot_units.to_robot(ACTION, torch.zeros(1, self.config.action_feature.shape[0]))  # stats known?
+        gamma = self.stop_threshold() if safety.enabled else None
+        if gamma is not None and not math.isfinite(gamma):
+            raise RuntimeError("The safety stop is enabled but its threshold gamma is unknown: set `safety.gamma`.")
+        resume = safety.resume_threshold if safety.resume_threshold is not None else gamma
+        self._monitor = SafetyMonitor(gamma, resume, safety.resume_steps)
 
     # ---------------------------------------------------------------------------------------------- input checks
 
@@ -307,12 +381,108 @@ class VIBPolicy(PreTrainedPolicy):
 
     @torch.no_grad()
     def select_action(self, batch: dict[str, Tensor], **kwargs: Any) -> Tensor:
-        """One action per call; a new chunk is predicted when the queue of `n_action_steps` runs out."""
+        """One action per call, with the uncertainty of this step's observation in `last_step`.
+
+        Every step encodes the observation (the rate needs it); chunks are decoded when the action queue
+        runs out, or every step with temporal ensembling. The safety monitor then decides: while stopped the
+        safety action is emitted; a non-finite u, observation or action always stops (unknown means stop).
+        """
         self.eval()
-        if len(self._action_queue) == 0:
-            actions = self.predict_action_chunk(batch)[:, : self.config.n_action_steps]
-            self._action_queue.extend(actions.transpose(0, 1))
-        return self._action_queue.popleft()
+        batch_size = self._check_observation(batch)
+        if self._monitor is None:
+            self._start_episode()
+        obs_finite = torch.ones(batch_size, dtype=torch.bool, device=self.config.device)
+        for key in self._used_inputs:
+            obs_finite &= torch.isfinite(batch[key]).flatten(1).all(dim=1).to(obs_finite.device)
+
+        if self._reuse_last_plan_uncertainty():
+            posterior, rate, u = None, self.last_step.rate, self.last_step.u
+        else:
+            posterior, rate = self._encode(batch)
+            u = rate / self.rate_mean()
+        decision = self._monitor.update(u, unknown=~obs_finite)
+        if decision.resumed.any():
+            self._clear_plans()  # plans made before the stop belong to another situation
+        stopped = decision.stopped
+        if stopped.all():
+            action = self._safety_action(batch, batch_size)
+        else:
+            action = self._plan(posterior, u)
+            bad = ~torch.isfinite(action).all(dim=-1)
+            if bad.any():
+                self._monitor.force_stop(bad)
+                stopped = stopped | bad
+            if stopped.any():
+                action = torch.where(stopped.unsqueeze(-1), self._safety_action(batch, batch_size), action)
+        self._last_command = action
+        self.last_rate = rate
+        self.last_step = UncertaintyStep(
+            rate=rate,
+            u=u,
+            gamma=self.stop_threshold(),
+            threshold_active=self.config.safety.enabled,
+            stopped=stopped,
+            just_stopped=decision.just_stopped,
+            resumed=decision.resumed,
+        )
+        return action
+
+    def _reuse_last_plan_uncertainty(self) -> bool:
+        """With `uncertainty_every_step=False`, steps served from the action queue skip the network."""
+        return (
+            not self.config.uncertainty_every_step
+            and self.config.temporal_ensemble == "none"
+            and len(self._action_queue) > 0
+            and self.last_step is not None
+            and not bool(self._monitor.stopped.any())
+        )
+
+    def _encode(self, batch: dict[str, Tensor]) -> tuple[Posterior, Tensor]:
+        posterior = self.model.encode(batch)
+        return posterior, self.model.bottleneck.rate(posterior)
+
+    def _plan(self, posterior: Posterior | None, u: Tensor) -> Tensor:
+        """The next action from the queue or the ensemble, decoding a chunk when needed."""
+        mode = self.config.temporal_ensemble
+        if mode == "none" and self._action_queue:
+            return self._action_queue.popleft()
+        if posterior is None:
+            raise RuntimeError("A chunk must be planned but the observation was not encoded.")
+        z = posterior.sample() if self.config.sample_latent_at_inference else posterior.mean
+        chunk = self.model.decoder(z)
+        if mode == "none":
+            self._action_queue.extend(chunk[:, : self.config.n_action_steps].transpose(0, 1))
+            return self._action_queue.popleft()
+        if mode == "act":
+            return self._act_ensembler.update(chunk)
+        return self._u_ensembler.update(chunk, u)
+
+    def _clear_plans(self) -> None:
+        self._action_queue.clear()
+        self._act_ensembler.reset()
+        self._u_ensembler.reset()
+
+    def _safety_action(self, batch: dict[str, Tensor], batch_size: int) -> Tensor:
+        """`hold` (the last command) or a bounded step towards `home`, in the policy's normalized space."""
+        safety = self.config.safety
+        if safety.action == "hold" and self._last_command is not None:
+            return self._last_command
+        # Robot units from here on: the home pose and its per-step bound are physical.
+        last = None if self._last_command is None else self.robot_units.to_robot(ACTION, self._last_command)
+        measured = None
+        state = batch.get(OBS_STATE)
+        if (
+            last is None
+            and state is not None
+            and state.shape[-1] == self.config.action_feature.shape[0]
+            and self.robot_units.known(OBS_STATE)
+        ):
+            measured = self.robot_units.to_robot(OBS_STATE, state)  # joint-position robots: state = action space
+        home = None
+        if safety.home_pose is not None:
+            home = torch.tensor(safety.home_pose, dtype=torch.float32, device=self.config.device)
+        action = SafetyAction(safety.action, home, safety.home_max_step)(last, measured, batch_size)
+        return self.robot_units.to_policy(ACTION, action)
 
     # -------------------------------------------------------------------------------------------------- train
 
@@ -330,6 +500,8 @@ class VIBPolicy(PreTrainedPolicy):
         n_valid = valid.expand_as(abs_err)
         rate = out.rate
         self.last_rate = rate.detach()
+        if self.training:
+            self.rate_tracker.update(rate)
 
         if reduction == "none":
             l1 = (abs_err * valid).sum((1, 2)) / n_valid.sum((1, 2)).clamp_min(1)

@@ -1,0 +1,187 @@
+"""The safety stop (paper Sec. III-E, Fig. 3c): a per-environment state machine fed one score per step.
+
+    RUN  -> STOP  when  u > gamma  (if the threshold stop is enabled)  or  the step is unknown
+                        (u, the observation or the predicted action not finite: unknown means stop)
+    STOP -> RUN   when  u < resume_threshold  for  resume_steps  consecutive steps
+
+`SafetyMonitor` knows nothing about the policy or the score: any uncertainty score (the VIB rate, RND, ...)
+can drive it. `SafetyAction` produces what a stopped policy emits: `hold` repeats the last commanded action;
+`home` moves towards a home pose, each action dimension changing by at most `max_step` per step:
+
+    a_t = a_{t-1} + clip(home - a_{t-1}, -max_step, max_step)      (robot units).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import torch
+from lerobot.configs.types import FeatureType, NormalizationMode, PolicyFeature
+from lerobot.processor import NormalizerProcessorStep, TransitionKey, UnnormalizerProcessorStep, create_transition
+from lerobot.utils.constants import ACTION
+from torch import Tensor, nn
+
+
+@dataclass
+class SafetyStep:
+    """What one step of the monitor decided, per batch element."""
+
+    stopped: Tensor  # (B,) bool: the safety action is emitted this step
+    just_stopped: Tensor  # (B,) bool: RUN -> STOP at this step
+    resumed: Tensor  # (B,) bool: STOP -> RUN at this step (plans made before the stop must be dropped)
+
+
+class SafetyMonitor:
+    """Batched RUN/STOP state machine with hysteresis.
+
+    Args:
+        gamma: stop when u > gamma. None: never stop on the threshold (non-finite steps still stop).
+        resume_threshold: resume after u < resume_threshold for `resume_steps` steps (default: gamma).
+        resume_steps: consecutive calm steps needed to resume.
+    """
+
+    def __init__(self, gamma: float | None, resume_threshold: float | None = None, resume_steps: int = 10):
+        if resume_steps < 1:
+            raise ValueError(f"resume_steps must be >= 1, got {resume_steps}.")
+        if resume_threshold is None:
+            resume_threshold = gamma if gamma is not None else float("inf")
+        if gamma is not None and resume_threshold > gamma:
+            raise ValueError(f"resume_threshold ({resume_threshold}) must not exceed gamma ({gamma}).")
+        self.gamma = gamma
+        self.resume_threshold = resume_threshold
+        self.resume_steps = resume_steps
+        self.reset()
+
+    def reset(self) -> None:
+        self.stopped: Tensor | None = None
+        self._calm_steps: Tensor | None = None
+
+    def update(self, u: Tensor, unknown: Tensor | None = None) -> SafetyStep:
+        """u: (B,) scores; unknown: (B,) bool, True where this step cannot be trusted for another reason."""
+        u = u.detach().reshape(-1)
+        if self.stopped is None:
+            self.stopped = torch.zeros_like(u, dtype=torch.bool)
+            self._calm_steps = torch.zeros_like(u, dtype=torch.long)
+        elif self.stopped.shape != u.shape:
+            raise ValueError(f"Batch size changed from {self.stopped.shape[0]} to {u.shape[0]} without reset().")
+        bad = ~torch.isfinite(u)
+        if unknown is not None:
+            bad = bad | unknown.reshape(-1).to(bad.device)
+        too_high = u > self.gamma if self.gamma is not None else torch.zeros_like(bad)
+        calm = ~bad & (u < self.resume_threshold)
+
+        was_stopped = self.stopped
+        self._calm_steps = torch.where(was_stopped & calm, self._calm_steps + 1, torch.zeros_like(self._calm_steps))
+        resumed = was_stopped & (self._calm_steps >= self.resume_steps)
+        just_stopped = ~was_stopped & (bad | too_high)
+        # A step that cannot be trusted stops even a policy that would resume now.
+        stopped = (was_stopped & ~resumed) | just_stopped | bad
+        self._calm_steps = torch.where(stopped, self._calm_steps, torch.zeros_like(self._calm_steps))
+        self.stopped = stopped
+        return SafetyStep(stopped=stopped, just_stopped=just_stopped, resumed=resumed & ~bad)
+
+    def force_stop(self, mask: Tensor) -> None:
+        """Stop these batch elements now (e.g. the policy produced a non-finite action)."""
+        self.stopped = self.stopped | mask
+        self._calm_steps = torch.where(mask, torch.zeros_like(self._calm_steps), self._calm_steps)
+
+
+class SafetyAction:
+    """The action a stopped policy emits, in robot units.
+
+    Args:
+        mode: "hold" or "home".
+        home: (A,) home action (needed for "home"; for "hold", used when nothing was commanded yet).
+        max_step: largest change per step and dimension when going home.
+    """
+
+    def __init__(self, mode: str, home: Tensor | None = None, max_step: float = 0.01):
+        if mode not in ("hold", "home"):
+            raise ValueError(f"Safety action must be 'hold' or 'home', got {mode!r}.")
+        if mode == "home" and home is None:
+            raise ValueError("The 'home' safety action needs a home pose.")
+        if not max_step > 0:
+            raise ValueError(f"max_step must be > 0, got {max_step}.")
+        self.mode, self.home, self.max_step = mode, home, max_step
+
+    def __call__(self, last_command: Tensor | None, fallback: Tensor | None = None, batch_size: int = 1) -> Tensor:
+        """last_command: (B, A) last action sent to the robot, or None at the first step; fallback: (B, A)
+        stand-in for it at the first step (e.g. the measured joint positions). Returns (B, A)."""
+        reference = last_command
+        if reference is None and fallback is not None and torch.isfinite(fallback).all():
+            reference = fallback
+        if reference is None:
+            if self.mode == "hold" and self.home is not None:
+                return self.home.expand(batch_size, -1).clone()
+            raise RuntimeError(
+                "Safety stop at the first step with no commanded action and no measured pose to start from: "
+                + ("configure `safety.home_pose`." if self.mode == "hold" else "cannot go home in bounded steps.")
+            )
+        if self.mode == "hold":
+            return reference.clone()
+        home = self.home.to(reference)
+        return reference + (home - reference).clamp(-self.max_step, self.max_step)
+
+
+# Statistics each normalization mode needs (LeRobot's normalizer).
+_MODE_STATS = {
+    NormalizationMode.MEAN_STD: ("mean", "std"),
+    NormalizationMode.MIN_MAX: ("min", "max"),
+    NormalizationMode.QUANTILES: ("q01", "q99"),
+    NormalizationMode.QUANTILE10: ("q10", "q90"),
+    NormalizationMode.IDENTITY: (),
+}
+
+
+class RobotUnits(nn.Module):
+    """Actions (and the robot state) between the policy's normalized space and robot units.
+
+    The policy acts in normalized space; a home pose and its per-step bound are in robot units. The dataset
+    statistics the processors normalize with are kept here as buffers (NaN until known), so a checkpoint
+    carries them; the arithmetic is LeRobot's normalizer's.
+    """
+
+    def __init__(
+        self,
+        features: dict[str, PolicyFeature],
+        norm_map: dict[str, NormalizationMode],
+        dataset_stats: dict[str, dict] | None = None,
+    ):
+        super().__init__()
+        self.features = features
+        self.norm_map = {FeatureType(k) if isinstance(k, str) else k: NormalizationMode(v) for k, v in norm_map.items()}
+        self._names: dict[str, dict[str, str]] = {}
+        for key, ft in features.items():
+            mode = self.norm_map.get(ft.type, NormalizationMode.IDENTITY)
+            self._names[key] = {}
+            for stat in _MODE_STATS[mode]:
+                name = f"{key.replace('.', '_')}_{stat}"
+                value = torch.full(tuple(ft.shape), torch.nan)
+                if dataset_stats and stat in dataset_stats.get(key, {}):
+                    value = torch.as_tensor(dataset_stats[key][stat], dtype=torch.float32).reshape(ft.shape)
+                self.register_buffer(name, value)
+                self._names[key][stat] = name
+
+    def known(self, key: str) -> bool:
+        return key in self._names and all(torch.isfinite(getattr(self, n)).all() for n in self._names[key].values())
+
+    def _stats(self) -> dict[str, dict[str, Tensor]]:
+        return {key: {stat: getattr(self, n) for stat, n in names.items()} for key, names in self._names.items()}
+
+    def _transform(self, key: str, value: Tensor, inverse: bool) -> Tensor:
+        if not self.known(key):
+            raise RuntimeError(
+                f"The normalization statistics of `{key}` are unknown to the policy: it was built without "
+                "dataset statistics (train it with lerobot-train or pass `dataset_stats`)."
+            )
+        step_cls = UnnormalizerProcessorStep if inverse else NormalizerProcessorStep
+        step = step_cls(features=self.features, norm_map=self.norm_map, stats=self._stats(), device=value.device)
+        if key == ACTION:
+            return step(create_transition(action=value))[TransitionKey.ACTION]
+        return step(create_transition(observation={key: value}))[TransitionKey.OBSERVATION][key]
+
+    def to_robot(self, key: str, value: Tensor) -> Tensor:
+        return self._transform(key, value, inverse=True)
+
+    def to_policy(self, key: str, value: Tensor) -> Tensor:
+        return self._transform(key, value, inverse=False)

@@ -1,0 +1,202 @@
+"""`lerobot-vib-calibrate`: exact rate statistics and the stop threshold, written into a VIB checkpoint.
+
+    lerobot-vib-calibrate --policy.path=outputs/train/vib/checkpoints/last/pretrained_model \
+        --dataset.repo_id=local/aloha_sim_transfer_cube_scripted --dataset.root=data/transfer_cube \
+        [--episodes='[0,1,...,39]'] [--conformal_alpha=0.05 --conformal_episodes='[40,...,49]'] \
+        [--output_dir=...]
+
+R_bar (mean rate), its std and quantiles are computed in eval mode over `--episodes` (default: all) and
+stored in the checkpoint's config (`calibration`), so `from_pretrained`, `lerobot-eval` and a Hub push carry
+them. gamma is the paper's mean(u) + 2 std(u), or with `--conformal_alpha` the split-conformal threshold on
+held-out `--conformal_episodes` (see `lerobot_vib.calibration`). Without `--output_dir` the checkpoint is
+updated in place.
+"""
+
+import logging
+import os
+import shutil
+from dataclasses import dataclass
+from pathlib import Path
+
+import torch
+from lerobot.configs import parser
+from lerobot.configs.policies import PreTrainedConfig
+from lerobot.datasets.lerobot_dataset import LeRobotDataset
+from lerobot.policies.factory import make_pre_post_processors
+from lerobot.utils.import_utils import register_third_party_plugins
+
+from ..calibration import QUANTILE_LEVELS, conformal_gamma, mean_plus_2std_gamma, rate_statistics
+from ..configuration_vib import CalibrationConfig
+from ..modeling_vib import VIBPolicy
+
+logger = logging.getLogger(__name__)
+
+
+@dataclass
+class CalibrationDataset:
+    """Args:
+    repo_id: LeRobot dataset id (the policy's training data, or data like it).
+    root: Local directory of the dataset.
+    revision: Hub revision, when the dataset comes from the Hub.
+    video_backend: Video decoder (LeRobot's default when None).
+    """
+
+    repo_id: str
+    root: str | None = None
+    revision: str | None = None
+    video_backend: str | None = None
+
+
+@dataclass
+class CalibrateConfig:
+    """Args:
+    dataset: The dataset to compute the rate statistics on.
+    policy: Set with `--policy.path=<checkpoint dir or Hub id>`.
+    episodes: Episodes for R_bar and the statistics (default: all).
+    conformal_alpha: Target per-episode false-stop rate; sets gamma by split conformal prediction.
+    conformal_episodes: Held-out in-distribution episodes for the conformal threshold (not in `episodes`).
+    batch_size: Frames per forward pass.
+    num_workers: DataLoader workers.
+    output_dir: Where to write the calibrated checkpoint (default: in place, for a local checkpoint).
+    """
+
+    dataset: CalibrationDataset
+    policy: PreTrainedConfig | None = None
+    episodes: list[int] | None = None
+    conformal_alpha: float | None = None
+    conformal_episodes: list[int] | None = None
+    batch_size: int = 32
+    num_workers: int = 0
+    output_dir: Path | None = None
+
+    def __post_init__(self):
+        policy_path = parser.get_path_arg("policy")
+        if policy_path:
+            cli_overrides = parser.get_cli_overrides("policy") or []
+            self.policy = PreTrainedConfig.from_pretrained(policy_path, cli_overrides=cli_overrides)
+            self.policy.pretrained_path = Path(policy_path)
+        if (self.conformal_alpha is None) != (self.conformal_episodes is None):
+            raise ValueError("`--conformal_alpha` and `--conformal_episodes` (held-out episodes) go together.")
+
+    @classmethod
+    def __get_path_fields__(cls) -> list[str]:
+        return ["policy"]
+
+
+def _loader(repo_id: str, root, episodes, revision, video_backend, batch_size, num_workers, needed: list[str]):
+    dataset = LeRobotDataset(repo_id, root=root, episodes=episodes, revision=revision, video_backend=video_backend)
+    missing = [k for k in needed if k not in dataset.meta.features]
+    if missing:
+        raise KeyError(
+            f"Dataset {repo_id} lacks {missing}, which the policy needs (it has {sorted(dataset.meta.features)})."
+        )
+    return torch.utils.data.DataLoader(dataset, batch_size=batch_size, num_workers=num_workers, shuffle=False)
+
+
+def calibrate(
+    policy: VIBPolicy,
+    preprocessor,
+    repo_id: str,
+    root: str | Path | None = None,
+    episodes: list[int] | None = None,
+    conformal_alpha: float | None = None,
+    conformal_episodes: list[int] | None = None,
+    batch_size: int = 32,
+    num_workers: int = 0,
+    revision: str | None = None,
+    video_backend: str | None = None,
+) -> CalibrationConfig:
+    """Rate statistics of `policy` (eval mode) over the dataset's episodes, and gamma."""
+    if conformal_episodes is not None and episodes is not None and set(conformal_episodes) & set(episodes):
+        raise ValueError(
+            "Held-out conformal episodes must not be among the calibration episodes: "
+            f"{sorted(set(conformal_episodes) & set(episodes))}."
+        )
+    policy.eval()
+    needed = list(policy._used_inputs)
+
+    def encode_rate(batch: dict) -> torch.Tensor:
+        obs = preprocessor({k: v for k, v in batch.items() if k.startswith("observation")})
+        policy._check_observation(obs)
+        return policy._encode(obs)[1]
+
+    common = dict(revision=revision, video_backend=video_backend, batch_size=batch_size, num_workers=num_workers)
+    stats = rate_statistics(encode_rate, _loader(repo_id, root, episodes, needed=needed, **common))
+    calibration = CalibrationConfig(
+        dataset_repo_id=repo_id,
+        episodes=sorted(set(stats.episode_index.tolist())),
+        n_frames=int(stats.rates.numel()),
+        rate_mean=stats.mean,
+        rate_std=stats.std,
+        rate_quantiles=stats.quantiles(QUANTILE_LEVELS),
+        gamma=mean_plus_2std_gamma(stats.mean, stats.std),
+        gamma_method="mean_plus_2std",
+    )
+    if conformal_alpha is not None:
+        held_out = rate_statistics(encode_rate, _loader(repo_id, root, conformal_episodes, needed=needed, **common))
+        calibration.gamma = conformal_gamma(held_out.episode_max(scale=stats.mean), conformal_alpha)
+        calibration.gamma_method = "conformal"
+        calibration.conformal_alpha = conformal_alpha
+        calibration.conformal_episodes = sorted(set(held_out.episode_index.tolist()))
+    return calibration
+
+
+@parser.wrap()
+def calibrate_main(cfg: CalibrateConfig) -> CalibrationConfig:
+    if cfg.policy is None:
+        raise ValueError("Pass the checkpoint to calibrate with `--policy.path=...`.")
+    if cfg.policy.type != "vib":
+        raise ValueError(
+            f"lerobot-vib-calibrate calibrates VIB policies; {cfg.policy.pretrained_path} is a "
+            f"{cfg.policy.type!r} policy."
+        )
+    source = Path(cfg.policy.pretrained_path)
+    output_dir = cfg.output_dir
+    if output_dir is None:
+        if not source.is_dir():
+            raise ValueError(f"{source} is not a local checkpoint: pass `--output_dir` for the calibrated copy.")
+        output_dir = source
+    policy = VIBPolicy.from_pretrained(source, config=cfg.policy)
+    preprocessor, _ = make_pre_post_processors(policy.config, pretrained_path=str(source))
+    calibration = calibrate(
+        policy,
+        preprocessor,
+        cfg.dataset.repo_id,
+        root=cfg.dataset.root,
+        episodes=cfg.episodes,
+        conformal_alpha=cfg.conformal_alpha,
+        conformal_episodes=cfg.conformal_episodes,
+        batch_size=cfg.batch_size,
+        num_workers=cfg.num_workers,
+        revision=cfg.dataset.revision,
+        video_backend=cfg.dataset.video_backend,
+    )
+    policy.config.calibration = calibration
+    if output_dir != source:
+        if source.is_dir():
+            shutil.copytree(source, output_dir, dirs_exist_ok=True)
+        else:  # a Hub checkpoint: the processors come along with the policy files
+            preprocessor.save_pretrained(output_dir)
+            _, postprocessor = make_pre_post_processors(policy.config, pretrained_path=str(source))
+            postprocessor.save_pretrained(output_dir)
+    policy.save_pretrained(output_dir)
+    quantiles = ", ".join(f"q{k}={v:.4g}" for k, v in calibration.rate_quantiles.items())
+    print(
+        f"Calibrated {output_dir} on {calibration.n_frames} frames of {len(calibration.episodes)} episodes of "
+        f"{calibration.dataset_repo_id}:\n  R_bar={calibration.rate_mean:.6g}  std={calibration.rate_std:.4g}  "
+        f"{quantiles}\n  gamma={calibration.gamma:.4f} ({calibration.gamma_method}"
+        + (f", alpha={calibration.conformal_alpha}" if calibration.conformal_alpha is not None else "")
+        + ")"
+    )
+    return calibration
+
+
+def main() -> None:
+    os.environ.setdefault("MUJOCO_GL", "egl")
+    logging.basicConfig(level=logging.INFO, format="%(levelname)s %(message)s")
+    register_third_party_plugins()
+    calibrate_main()
+
+
+if __name__ == "__main__":
+    main()

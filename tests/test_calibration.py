@@ -1,0 +1,181 @@
+"""u = R / R_bar: running statistics from training, exact calibration over a dataset, and thresholds."""
+
+import json
+import math
+
+import pytest
+import torch
+from lerobot.datasets.lerobot_dataset import LeRobotDataset
+from lerobot.utils.feature_utils import dataset_to_policy_features
+
+from helpers import SMALL, make_batch, make_config
+from lerobot_vib.calibration import RateTracker, conformal_gamma, mean_plus_2std_gamma
+from lerobot_vib.configuration_vib import VIBConfig
+from lerobot_vib.modeling_vib import VIBPolicy
+from lerobot_vib.processor_vib import make_vib_pre_post_processors
+from lerobot_vib.scripts.calibrate import calibrate
+from test_lerobot_integration import BIN, run
+
+
+def test_running_statistics_are_debiased_moments():
+    tracker = RateTracker(momentum=0.1)
+    assert math.isnan(tracker.mean)
+    tracker.update(torch.tensor([2.0, 4.0]))
+    assert tracker.mean == pytest.approx(3.0) and tracker.std == pytest.approx(1.0)
+    for _ in range(200):
+        tracker.update(torch.tensor([5.0, 7.0]))
+    assert tracker.mean == pytest.approx(6.0, abs=1e-6) and tracker.std == pytest.approx(1.0, abs=1e-5)
+    tracker.update(torch.tensor([float("nan")]))  # ignored
+    assert tracker.mean == pytest.approx(6.0, abs=1e-6)
+
+
+def test_training_forward_updates_the_running_statistics_and_eval_does_not():
+    policy = VIBPolicy(make_config())
+    batch = make_batch(policy.config)
+    policy.eval().forward(batch)
+    assert policy.rate_tracker.n_updates == 0
+    policy.train().forward(batch)
+    assert policy.rate_tracker.n_updates == 1
+    assert policy.rate_mean() == pytest.approx(float(policy.last_rate.mean()), rel=1e-6)
+    state = policy.state_dict()
+    assert {"rate_tracker.ema_mean", "rate_tracker.ema_sq", "rate_tracker.n_updates"} <= set(state)
+
+
+def test_threshold_precedence_explicit_then_calibrated_then_running():
+    policy = VIBPolicy(make_config())
+    policy.rate_tracker.update(torch.tensor([1.0, 3.0]))
+    assert policy.stop_threshold() == pytest.approx(mean_plus_2std_gamma(2.0, 1.0)) == pytest.approx(2.0)
+    policy.config.calibration.rate_mean, policy.config.calibration.rate_std = 4.0, 1.0
+    assert policy.rate_mean() == 4.0 and policy.stop_threshold() == pytest.approx(1.5)
+    policy.config.calibration.gamma = 1.7
+    assert policy.stop_threshold() == 1.7
+    policy.config.safety.gamma = 3.0
+    assert policy.stop_threshold() == 3.0
+
+
+def test_conformal_gamma_is_the_right_order_statistic():
+    scores = torch.tensor([0.3, 2.0, 1.1, 0.9, 1.5, 0.2, 1.8, 0.7, 1.2])  # n = 9
+    ordered = sorted(scores.tolist())
+    # alpha = 0.2: k = ceil(10 * 0.8) = 8 -> the 8th smallest
+    assert conformal_gamma(scores, 0.2) == ordered[7]
+    # alpha = 0.1: k = ceil(10 * 0.9) = 9 -> the largest
+    assert conformal_gamma(scores, 0.1) == ordered[8]
+    with pytest.raises(ValueError, match="at least 19 held-out episodes"):
+        conformal_gamma(scores, 0.05)  # k = 10 > n
+    with pytest.raises(ValueError, match="alpha"):
+        conformal_gamma(scores, 1.5)
+
+
+def test_conformal_gamma_bounds_the_false_stop_rate():
+    """Exchangeable scores: P(new score > gamma) <= alpha, and not much below (1 - alpha + 1/(n+1) coverage)."""
+    torch.manual_seed(0)
+    n, alpha, trials = 19, 0.1, 4000
+    scores = torch.distributions.Gamma(2.0, 1.0).sample((trials, n + 1))  # skewed, like a KL rate
+    exceed = [float(s[n] > conformal_gamma(s[:n], alpha)) for s in scores]
+    rate = sum(exceed) / trials
+    assert rate <= alpha + 3 * math.sqrt(alpha * (1 - alpha) / trials)
+    assert rate >= alpha - 1 / (n + 1) - 3 * math.sqrt(alpha * (1 - alpha) / trials)
+
+
+@pytest.fixture(scope="module")
+def tiny_policy(tiny_dataset_root):
+    meta = LeRobotDataset("local/tiny", root=tiny_dataset_root).meta
+    features = dataset_to_policy_features(meta.features)
+    config = VIBConfig(
+        device="cpu",
+        pretrained_backbone_weights=None,
+        input_features={k: f for k, f in features.items() if k != "action"},
+        output_features={"action": features["action"]},
+        **SMALL,
+    )
+    policy = VIBPolicy(config, dataset_stats=meta.stats).eval()
+    preprocessor, _ = make_vib_pre_post_processors(config, dataset_stats=meta.stats)
+    return policy, preprocessor
+
+
+def direct_rates(policy, preprocessor, root, episode: int) -> torch.Tensor:
+    """The rate of every frame of one episode, one frame at a time."""
+    frames = LeRobotDataset("local/tiny", root=root, episodes=[episode])
+    rates = []
+    with torch.no_grad():
+        for i in range(len(frames)):
+            obs = preprocessor({k: v for k, v in frames[i].items() if k.startswith("observation")})
+            rates.append(float(policy._encode(obs)[1]))
+    return torch.tensor(rates, dtype=torch.float64)
+
+
+def test_calibration_statistics_equal_a_direct_computation(tiny_policy, tiny_dataset_root):
+    policy, preprocessor = tiny_policy
+    calibration = calibrate(policy, preprocessor, "local/tiny", root=tiny_dataset_root, episodes=[1], batch_size=7)
+    rates = direct_rates(policy, preprocessor, tiny_dataset_root, 1)
+    assert calibration.n_frames == len(rates) == 20 and calibration.episodes == [1]
+    assert calibration.rate_mean == pytest.approx(float(rates.mean()), rel=1e-5)
+    assert calibration.rate_std == pytest.approx(float(rates.std(unbiased=False)), rel=1e-4)
+    assert calibration.rate_quantiles["0.9"] == pytest.approx(float(torch.quantile(rates, 0.9)), rel=1e-5)
+    expected_gamma = 1 + 2 * float(rates.std(unbiased=False)) / float(rates.mean())
+    assert calibration.gamma == pytest.approx(expected_gamma, rel=1e-4)
+    assert calibration.gamma_method == "mean_plus_2std"
+
+
+def test_conformal_calibration_uses_the_held_out_episodes_maxima(tiny_policy, tiny_dataset_root):
+    policy, preprocessor = tiny_policy
+    calibration = calibrate(
+        policy,
+        preprocessor,
+        "local/tiny",
+        root=tiny_dataset_root,
+        episodes=[0],
+        conformal_alpha=0.5,
+        conformal_episodes=[1],
+    )
+    r_bar = float(direct_rates(policy, preprocessor, tiny_dataset_root, 0).mean())
+    held_out_max_u = float(direct_rates(policy, preprocessor, tiny_dataset_root, 1).max()) / r_bar
+    # One held-out episode, alpha = 0.5: k = ceil(2 * 0.5) = 1, its max u against R_bar of episode 0.
+    assert calibration.gamma_method == "conformal" and calibration.conformal_episodes == [1]
+    assert calibration.gamma == pytest.approx(held_out_max_u, rel=1e-5)
+    with pytest.raises(ValueError, match="must not be among the calibration episodes"):
+        calibrate(
+            policy,
+            preprocessor,
+            "local/tiny",
+            root=tiny_dataset_root,
+            episodes=[0, 1],
+            conformal_alpha=0.5,
+            conformal_episodes=[1],
+        )
+
+
+def test_a_dataset_without_the_policys_camera_is_refused(tiny_dataset_root):
+    config = make_config(cameras={"wrist": (3, 48, 64)}, state_dim=14, action_dim=14)
+    policy = VIBPolicy(config)
+    preprocessor, _ = make_vib_pre_post_processors(config)
+    with pytest.raises(KeyError, match=r"observation\.images\.wrist"):
+        calibrate(policy, preprocessor, "local/tiny", root=tiny_dataset_root)
+
+
+def test_calibrate_command_writes_the_statistics_into_the_checkpoint(tiny_checkpoint, tiny_dataset_root, tmp_path):
+    ckpt = tiny_checkpoint
+    trained = VIBPolicy.from_pretrained(ckpt)
+    assert trained.rate_tracker.n_updates == 2 and math.isfinite(trained.rate_mean())  # usable out of the box
+
+    calibrated_dir = tmp_path / "calibrated"
+    log = run(
+        [
+            str(BIN / "lerobot-vib-calibrate"),
+            f"--policy.path={ckpt}",
+            "--dataset.repo_id=local/tiny",
+            f"--dataset.root={tiny_dataset_root}",
+            "--episodes=[0]",
+            f"--output_dir={calibrated_dir}",
+        ]
+    )
+    assert "R_bar=" in log
+    saved = json.loads((calibrated_dir / "config.json").read_text())["calibration"]  # what a Hub push uploads
+    loaded = VIBPolicy.from_pretrained(calibrated_dir)
+    assert loaded.rate_mean() == saved["rate_mean"] and saved["episodes"] == [0] and saved["n_frames"] == 20
+    assert loaded.stop_threshold() == saved["gamma"]
+    assert (calibrated_dir / "policy_preprocessor.json").exists()  # the processors travel with it
+    assert (
+        "calibration" not in json.loads((ckpt / "config.json").read_text())
+        or json.loads((ckpt / "config.json").read_text())["calibration"]["rate_mean"] is None
+    )  # the source checkpoint is untouched

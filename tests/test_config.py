@@ -1,0 +1,58 @@
+"""VIBConfig: the shipped JSON lists the defaults, and nested run-time settings survive save and load."""
+
+import json
+from pathlib import Path
+
+import draccus
+import pytest
+from lerobot.configs.policies import PreTrainedConfig
+
+from helpers import make_config
+from lerobot_vib.configuration_vib import VIBConfig
+
+CONFIG_JSON = Path(__file__).parents[1] / "configs" / "policy" / "vib.json"
+
+
+def test_shipped_json_lists_every_default():
+    shipped = json.loads(CONFIG_JSON.read_text())
+    defaults = draccus.encode(VIBConfig(device="cpu"), PreTrainedConfig)
+    defaults["device"] = None
+    assert shipped == defaults
+
+
+def test_safety_and_calibration_survive_save_and_load_with_cli_overrides(tmp_path):
+    config = make_config(temporal_ensemble="uncertainty", n_action_steps=1)
+    config.calibration.rate_mean, config.calibration.episodes = 0.25, [0, 3]
+    config.safety.home_pose = [0.0, 1.0, 2.0]
+    config._save_pretrained(tmp_path)
+    loaded = PreTrainedConfig.from_pretrained(
+        tmp_path, cli_overrides=["--safety.enabled=true", "--safety.gamma=2.5", "--safety.action=home"]
+    )
+    assert isinstance(loaded, VIBConfig)
+    assert loaded.calibration.rate_mean == 0.25 and loaded.calibration.episodes == [0, 3]
+    assert loaded.safety.enabled and loaded.safety.gamma == 2.5 and loaded.safety.action == "home"
+    assert loaded.safety.home_pose == [0.0, 1.0, 2.0] and loaded.temporal_ensemble == "uncertainty"
+
+
+@pytest.mark.parametrize(
+    ("safety", "message"),
+    [
+        (dict(action="brake"), "safety.action"),
+        (dict(action="home"), "home_pose"),
+        (dict(resume_steps=0), "resume_steps"),
+        (dict(gamma=-1.0), "safety.gamma"),
+        (dict(home_max_step=0.0), "home_max_step"),
+    ],
+)
+def test_bad_safety_settings(safety, message):
+    from lerobot_vib.configuration_vib import SafetyConfig
+
+    with pytest.raises(ValueError, match=message):
+        SafetyConfig(**safety)
+
+
+def test_home_pose_must_match_the_action_size():
+    config = make_config(action_dim=3)
+    config.safety.home_pose = [0.0, 0.0]
+    with pytest.raises(ValueError, match="home_pose"):
+        config.validate_features()

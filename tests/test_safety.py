@@ -1,0 +1,242 @@
+"""The safety stop: stops on u > gamma and on anything non-finite, holds or goes home, resumes with hysteresis."""
+
+import itertools
+import math
+
+import pytest
+import torch
+from hypothesis import HealthCheck, given, settings
+from hypothesis import strategies as st
+
+from helpers import make_batch, make_config
+from lerobot_vib.modeling_vib import VIBPolicy
+from lerobot_vib.safety import SafetyAction, SafetyMonitor
+
+NAN, INF = float("nan"), float("inf")
+
+
+def run_monitor(monitor: SafetyMonitor, us: list[float]) -> list[bool]:
+    return [bool(monitor.update(torch.tensor([u])).stopped) for u in us]
+
+
+def test_stops_when_u_exceeds_gamma_and_resumes_after_calm_steps():
+    monitor = SafetyMonitor(gamma=2.0, resume_steps=3)
+    stopped = run_monitor(monitor, [1.0, 1.5, 2.5, 1.0, 1.0, 1.0, 1.0])
+    # Stop at the spike; three calm steps later (the third one included) the policy runs again.
+    assert stopped == [False, False, True, True, True, False, False]
+
+
+def test_hysteresis_needs_u_below_the_resume_threshold_for_consecutive_steps():
+    monitor = SafetyMonitor(gamma=2.0, resume_threshold=1.2, resume_steps=2)
+    stopped = run_monitor(monitor, [3.0, 1.5, 1.5, 1.0, 1.9, 1.0, 1.0, 1.0])
+    # 1.5 is below gamma but not calm; a relapse to 1.9 restarts the count.
+    assert stopped == [True, True, True, True, True, True, False, False]
+
+
+def test_u_equal_to_gamma_does_not_stop():
+    assert run_monitor(SafetyMonitor(gamma=2.0), [2.0]) == [False]
+
+
+@pytest.mark.parametrize("bad", [NAN, INF, -INF])
+def test_non_finite_u_stops_even_without_a_threshold(bad):
+    monitor = SafetyMonitor(gamma=None, resume_steps=2)
+    assert run_monitor(monitor, [0.5, bad, 0.5, 0.5, 0.5]) == [False, True, True, False, False]
+
+
+def test_unknown_observation_stops_and_blocks_resuming():
+    monitor = SafetyMonitor(gamma=2.0, resume_steps=1)
+    assert bool(monitor.update(torch.tensor([0.5]), unknown=torch.tensor([True])).stopped)
+    assert bool(monitor.update(torch.tensor([0.5]), unknown=torch.tensor([True])).stopped)
+    step = monitor.update(torch.tensor([0.5]), unknown=torch.tensor([False]))
+    assert not bool(step.stopped) and bool(step.resumed)
+
+
+def test_batched_environments_stop_independently():
+    monitor = SafetyMonitor(gamma=1.0, resume_steps=1)
+    assert monitor.update(torch.tensor([0.5, 3.0, NAN])).stopped.tolist() == [False, True, True]
+    assert monitor.update(torch.tensor([0.5, 0.5, 0.5])).stopped.tolist() == [False, False, False]
+    with pytest.raises(ValueError, match="Batch size changed"):
+        monitor.update(torch.tensor([0.5]))
+
+
+def test_resume_threshold_above_gamma_is_refused():
+    with pytest.raises(ValueError, match="resume_threshold"):
+        SafetyMonitor(gamma=1.0, resume_threshold=2.0)
+
+
+def test_home_moves_at_most_max_step_per_step_and_arrives():
+    home = torch.tensor([1.0, -2.0, 0.0])
+    action = SafetyAction("home", home, max_step=0.1)
+    current = torch.tensor([[0.0, 0.0, 0.05]])
+    for _ in range(30):
+        nxt = action(current)
+        assert (nxt - current).abs().max() <= 0.1 + 1e-7
+        current = nxt
+    torch.testing.assert_close(current, home.unsqueeze(0))
+
+
+def test_hold_repeats_the_last_command_and_falls_back_at_the_first_step():
+    hold = SafetyAction("hold", home=torch.tensor([9.0, 9.0]))
+    last = torch.tensor([[1.0, 2.0]])
+    torch.testing.assert_close(hold(last), last)
+    torch.testing.assert_close(hold(None, fallback=torch.tensor([[3.0, 4.0]])), torch.tensor([[3.0, 4.0]]))
+    torch.testing.assert_close(hold(None, batch_size=2), torch.tensor([[9.0, 9.0], [9.0, 9.0]]))
+    with pytest.raises(RuntimeError, match="home_pose"):
+        SafetyAction("hold")(None)
+
+
+# ----------------------------------------------------------------------------------- the policy with its stop
+
+STATS = {
+    "action": {"mean": torch.tensor([0.5, -1.0, 2.0]), "std": torch.tensor([2.0, 0.5, 1.0])},
+    "observation.state": {"mean": torch.tensor([0.5, -1.0, 2.0]), "std": torch.tensor([2.0, 0.5, 1.0])},
+}
+
+
+def scripted_policy(safety: dict, us: list[float], nan_chunks: set[int] = frozenset(), **config) -> VIBPolicy:
+    """A small state-only policy whose u at step t is us[t] and whose decoder returns NaN at `nan_chunks`."""
+    cfg = make_config(
+        **{"cameras": {}, "state_dim": 3, "action_dim": 3, "chunk_size": 4, "n_action_steps": 4, **config}
+    )
+    for k, v in safety.items():
+        setattr(cfg.safety, k, v)
+    cfg.safety.__post_init__()
+    cfg.calibration.rate_mean = 1.0  # so that u = rate
+    policy = VIBPolicy(cfg, dataset_stats=STATS).eval()
+    step = {"t": 0, "decodes": 0}
+    encode, decode = policy._encode, policy.model.decoder.forward
+
+    def fake_encode(batch):
+        posterior, _ = encode(batch)
+        u = us[step["t"]]
+        step["t"] += 1
+        return posterior, torch.full((batch_size(batch),), u)
+
+    def fake_decode(z):
+        out = decode(z)
+        step["decodes"] += 1
+        return out * NAN if step["decodes"] in nan_chunks else out
+
+    policy._encode = fake_encode
+    policy.model.decoder.forward = fake_decode
+    policy.steps = step
+    return policy
+
+
+def batch_size(batch):
+    return next(iter(batch.values())).shape[0]
+
+
+def test_policy_emits_the_hold_action_while_stopped_and_replans_on_resume():
+    us = [0.5, 0.5, 5.0, 5.0, 0.5, 0.5, 0.5, 0.5]
+    policy = scripted_policy({"enabled": True, "gamma": 2.0, "resume_steps": 2}, us)
+    obs = make_batch(policy.config, batch_size=1, with_action=False)
+    out, states, decodes = [], [], []
+    for _ in us:
+        out.append(policy.select_action(obs))
+        states.append(bool(policy.last_step.stopped))
+        decodes.append(policy.steps["decodes"])
+    assert states == [False, False, True, True, True, False, False, False]
+    for t in (2, 3, 4):  # held: the action commanded just before the stop
+        torch.testing.assert_close(out[t], out[1])
+    assert decodes[5] == decodes[4] + 1  # the queue was cleared at the resume: a fresh chunk
+    assert policy.last_step.gamma == 2.0 and policy.last_step.threshold_active
+
+
+def test_policy_goes_home_in_bounded_steps_in_robot_units():
+    home = [3.0, 0.0, -1.0]
+    policy = scripted_policy(
+        {"enabled": True, "gamma": 2.0, "action": "home", "home_pose": home, "home_max_step": 0.05}, [5.0] * 80
+    )
+    obs = make_batch(policy.config, batch_size=1, with_action=False)
+    mean, std = STATS["action"]["mean"], STATS["action"]["std"]
+    robot = [policy.select_action(obs) * std + mean for _ in range(80)]  # what the unnormalizer outputs
+    steps = torch.stack([(b - a).abs().max() for a, b in itertools.pairwise(robot)])
+    assert steps.max() <= 0.05 + 1e-5
+    torch.testing.assert_close(robot[-1], torch.tensor([home]), atol=1e-4, rtol=0)
+
+
+def test_home_without_dataset_statistics_fails_before_any_action():
+    cfg = make_config(cameras={}, state_dim=3, action_dim=3)
+    cfg.safety.action, cfg.safety.home_pose = "home", [0.0, 0.0, 0.0]
+    cfg.calibration.rate_mean = 1.0
+    policy = VIBPolicy(cfg)  # built without dataset_stats
+    with pytest.raises(RuntimeError, match="normalization statistics"):
+        policy.select_action(make_batch(cfg, batch_size=1, with_action=False))
+    assert policy._last_command is None
+
+
+def test_a_policy_without_rate_statistics_refuses_to_act():
+    policy = VIBPolicy(make_config())
+    with pytest.raises(RuntimeError, match="R_bar"):
+        policy.select_action(make_batch(policy.config, batch_size=1, with_action=False))
+
+
+def test_nan_observation_gives_the_safety_action_not_nan():
+    policy = scripted_policy({"home_pose": [0.0, 0.0, 0.0]}, [0.5] * 4)
+    obs = make_batch(policy.config, batch_size=1, with_action=False)
+    first = policy.select_action(obs)
+    obs_nan = {k: v.clone() for k, v in obs.items()}
+    obs_nan["observation.state"][0, 1] = NAN
+    held = policy.select_action(obs_nan)
+    assert bool(policy.last_step.stopped) and torch.isfinite(held).all()
+    torch.testing.assert_close(held, first)
+
+
+@settings(max_examples=60, deadline=None, suppress_health_check=[HealthCheck.too_slow])
+@given(
+    us=st.lists(st.one_of(st.floats(0.0, 4.0), st.sampled_from([NAN, INF, -INF, 2.0])), min_size=1, max_size=25),
+    nan_chunks=st.sets(st.integers(1, 8), max_size=3),
+    mode=st.sampled_from(["hold", "home"]),
+    ensemble=st.sampled_from(["none", "uncertainty"]),
+)
+def test_only_the_safety_action_leaves_a_stopped_policy_and_never_a_non_finite_one(us, nan_chunks, mode, ensemble):
+    n_action_steps = 1 if ensemble != "none" else 4
+    policy = scripted_policy(
+        {
+            "enabled": True,
+            "gamma": 2.0,
+            "resume_threshold": 1.5,
+            "resume_steps": 2,
+            "action": mode,
+            "home_pose": [1.0, 1.0, 1.0],
+            "home_max_step": 0.1,
+        },
+        us,
+        nan_chunks,
+        temporal_ensemble=ensemble,
+        n_action_steps=n_action_steps,
+    )
+    obs = make_batch(policy.config, batch_size=1, with_action=False)
+    mean, std = STATS["action"]["mean"], STATS["action"]["std"]
+    previous = None
+    for u in us:
+        action = policy.select_action(obs)
+        assert torch.isfinite(action).all()
+        step = policy.last_step
+        if not math.isfinite(u) or u > 2.0:
+            assert bool(step.stopped)
+        if bool(step.stopped):
+            if previous is None:  # stopped at the first step: the measured state stands in
+                expected_robot = obs["observation.state"] * std + mean
+                if mode == "home":
+                    home = torch.tensor([[1.0, 1.0, 1.0]])
+                    expected_robot = expected_robot + (home - expected_robot).clamp(-0.1, 0.1)
+                torch.testing.assert_close(action * std + mean, expected_robot, atol=1e-5, rtol=0)
+            elif mode == "hold":
+                torch.testing.assert_close(action, previous)
+            else:
+                moved = ((action - previous) * std).abs().max()
+                assert moved <= 0.1 + 1e-5
+        previous = action
+
+
+def test_uncertainty_at_plans_only_skips_the_encoder_but_still_stops_on_nan():
+    policy = scripted_policy({}, [0.5] * 10, uncertainty_every_step=False)
+    obs = make_batch(policy.config, batch_size=1, with_action=False)
+    for _ in range(6):
+        policy.select_action(obs)
+    assert policy.steps["t"] == 2  # encoded at steps 0 and 4 only (n_action_steps = 4)
+    obs["observation.state"][0, 0] = NAN
+    action = policy.select_action(obs)
+    assert bool(policy.last_step.stopped) and torch.isfinite(action).all()
