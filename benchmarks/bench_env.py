@@ -10,7 +10,6 @@ from __future__ import annotations
 
 import argparse
 import os
-import platform
 import sys
 import time
 from pathlib import Path
@@ -19,6 +18,7 @@ os.environ.setdefault("MUJOCO_GL", "egl")
 
 import gym_aloha  # noqa: F401  (registers gym_aloha/*)
 import gymnasium as gym
+from report import cpu_name, emit
 
 from lerobot_vib.sim.aloha_env import FastAlohaEnv
 from lerobot_vib.sim.scripted import script_episode
@@ -64,13 +64,8 @@ def main() -> None:
         print(f"{name} {size}: {sps:.1f} steps/s", file=sys.stderr)
 
     base = rows[0][2]
-    cpu = platform.machine()
-    for line in Path("/proc/cpuinfo").read_text().splitlines() if Path("/proc/cpuinfo").exists() else []:
-        if line.startswith("model name"):
-            cpu = line.split(":", 1)[1].strip()
-            break
     lines = [
-        f"Machine: {cpu}, {os.cpu_count()} cores; MUJOCO_GL={os.environ['MUJOCO_GL']}; "
+        f"Machine: {cpu_name()}; MUJOCO_GL={os.environ['MUJOCO_GL']}; "
         f"{args.steps} steps of scripted transfer-cube actions, seed {args.seed}.",
         f"Command: python benchmarks/bench_env.py {' '.join(sys.argv[1:])}",
         "",
@@ -78,11 +73,7 @@ def main() -> None:
         "| --- | --- | ---: | ---: |",
     ]
     lines += [f"| {name} | {size} | {sps:.1f} | {sps / base:.1f}x |" for name, size, sps in rows]
-    table = "\n".join(lines) + "\n"
-    print(table)
-    if args.output:
-        args.output.parent.mkdir(parents=True, exist_ok=True)
-        args.output.write_text(table)
+    emit("\n".join(lines) + "\n", args.output)
 
 
 if __name__ == "__main__":

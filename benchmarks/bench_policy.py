@@ -13,7 +13,6 @@ Prints a Markdown table with VIB/ACT ratios and, with --output, writes it to a f
 from __future__ import annotations
 
 import argparse
-import platform
 import statistics
 import sys
 import time
@@ -24,6 +23,7 @@ import torch
 from lerobot.configs.types import FeatureType, PolicyFeature
 from lerobot.policies.act.configuration_act import ACTConfig
 from lerobot.policies.act.modeling_act import ACTPolicy
+from report import cpu_name, emit
 
 from lerobot_vib.configuration_vib import VIBConfig
 from lerobot_vib.modeling_vib import VIBPolicy
@@ -62,70 +62,84 @@ def batch(h: int, w: int, b: int, chunk_size: int, device: str, with_action: boo
     return out
 
 
-def timed(fn: Callable[[], object], warmup: int, repeats: int, device: str) -> float:
-    """Median seconds per call."""
-    for _ in range(warmup):
-        fn()
-    times = []
+def timed_interleaved(fns: dict[str, Callable[[], object]], warmup: int, repeats: int, device: str) -> dict:
+    """Median seconds per call of each function, the functions taking turns in every round so that a slow
+    spell of a shared machine hits all of them alike."""
+    for fn in fns.values():
+        for _ in range(warmup):
+            fn()
+    times: dict[str, list[float]] = {name: [] for name in fns}
     for _ in range(repeats):
-        if device.startswith("cuda"):
-            torch.cuda.synchronize()
-        t0 = time.perf_counter()
-        fn()
-        if device.startswith("cuda"):
-            torch.cuda.synchronize()
-        times.append(time.perf_counter() - t0)
-    return statistics.median(times)
+        for name, fn in fns.items():
+            if device.startswith("cuda"):
+                torch.cuda.synchronize()
+            t0 = time.perf_counter()
+            fn()
+            if device.startswith("cuda"):
+                torch.cuda.synchronize()
+            times[name].append(time.perf_counter() - t0)
+    return {name: statistics.median(t) for name, t in times.items()}
 
 
-def measure(kind: str, h: int, w: int, args: argparse.Namespace) -> dict:
-    torch.manual_seed(0)
-    policy = make_policy(kind, h, w, args.chunk_size, args.device)
-    n_params = sum(p.numel() for p in policy.parameters())
-    optimizer = torch.optim.AdamW(policy.get_optim_params(), lr=1e-5)
+def measure(h: int, w: int, args: argparse.Namespace) -> dict[str, dict]:
+    policies, train_steps, act_steps, queue_chunks = {}, {}, {}, {}
     train_batch = batch(h, w, args.batch_size, args.chunk_size, args.device)
-
-    def train_step():
-        policy.train()
-        loss, _ = policy.forward(train_batch)
-        optimizer.zero_grad()
-        loss.backward()
-        optimizer.step()
-
-    step_s = timed(train_step, args.warmup, args.train_repeats, args.device)
-
     obs = batch(h, w, 1, args.chunk_size, args.device, with_action=False)
-    policy.eval()
-    policy.reset()
-    # n_action_steps=1: every select_action call runs the network, as with temporal ensembling.
-    latency_s = timed(lambda: policy.select_action(obs), args.warmup, args.latency_repeats, args.device)
+    for kind in KINDS:
+        torch.manual_seed(0)
+        policy = policies[kind] = make_policy(kind, h, w, args.chunk_size, args.device)
+        optimizer = torch.optim.AdamW(policy.get_optim_params(), lr=1e-5)
 
-    policy.config.n_action_steps = args.chunk_size  # ACT's action queue over a whole chunk
-    policy.reset()
-    policy.select_action(obs)
-    chunk_s = timed(
-        lambda: [policy.select_action(obs) for _ in range(args.chunk_size)], 1, args.queue_repeats, args.device
-    )
+        def train_step(policy=policy, optimizer=optimizer):
+            policy.train()
+            loss, _ = policy.forward(train_batch)
+            optimizer.zero_grad()
+            loss.backward()
+            optimizer.step()
+
+        train_steps[kind] = train_step
+    train_s = timed_interleaved(train_steps, args.warmup, args.train_repeats, args.device)
+
+    for kind, policy in policies.items():
+        policy.eval()
+        policy.reset()
+        # n_action_steps=1: every select_action call runs the network, as with temporal ensembling.
+        act_steps[kind] = lambda policy=policy: policy.select_action(obs)
+    latency_s = timed_interleaved(act_steps, args.warmup, args.latency_repeats, args.device)
+
+    for kind, policy in policies.items():
+        policy.config.n_action_steps = args.chunk_size  # ACT's action queue over a whole chunk
+        policy.reset()
+        policy.select_action(obs)  # each timed call below then holds exactly one network pass
+        queue_chunks[kind] = lambda policy=policy: [policy.select_action(obs) for _ in range(args.chunk_size)]
+    chunk_s = timed_interleaved(queue_chunks, 1, args.queue_repeats, args.device)
+
+    # Where a VIB pass spends its time: the encoder (ResNet, MLPs, posterior) and the action transformer.
+    vib = policies["vib"].model
+    with torch.no_grad():
+        z = vib.encode(obs).mean
+        parts = timed_interleaved(
+            {"encoder": lambda: vib.encode(obs), "decoder": lambda: vib.decoder(z)},
+            args.warmup,
+            args.latency_repeats,
+            args.device,
+        )
     return {
-        "params_m": n_params / 1e6,
-        "samples_per_s": args.batch_size / step_s,
-        "latency_ms": 1e3 * latency_s,
-        "queue_ms": 1e3 * chunk_s / args.chunk_size,
+        kind: {
+            "params_m": sum(p.numel() for p in policies[kind].parameters()) / 1e6,
+            "samples_per_s": args.batch_size / train_s[kind],
+            "latency_ms": 1e3 * latency_s[kind],
+            "queue_ms": 1e3 * chunk_s[kind] / args.chunk_size,
+            **({"encoder_ms": 1e3 * parts["encoder"], "decoder_ms": 1e3 * parts["decoder"]} if kind == "vib" else {}),
+        }
+        for kind in KINDS
     }
 
 
 def machine(device: str) -> str:
     if device.startswith("cuda"):
         return torch.cuda.get_device_name()
-    cpu = platform.processor() or platform.machine()
-    try:
-        for line in Path("/proc/cpuinfo").read_text().splitlines():
-            if line.startswith("model name"):
-                cpu = line.split(":", 1)[1].strip()
-                break
-    except OSError:
-        pass
-    return f"{cpu}, {torch.get_num_threads()} threads"
+    return f"{cpu_name()}, {torch.get_num_threads()} torch threads"
 
 
 def main() -> None:
@@ -135,8 +149,8 @@ def main() -> None:
     parser.add_argument("--batch_size", type=int, default=8)
     parser.add_argument("--device", default="cuda" if torch.cuda.is_available() else "cpu")
     parser.add_argument("--warmup", type=int, default=2)
-    parser.add_argument("--train_repeats", type=int, default=5)
-    parser.add_argument("--latency_repeats", type=int, default=10)
+    parser.add_argument("--train_repeats", type=int, default=10)
+    parser.add_argument("--latency_repeats", type=int, default=20)
     parser.add_argument("--queue_repeats", type=int, default=3, help="chunks timed in queue mode")
     parser.add_argument("--output", type=Path, default=None, help="also write the table to this file")
     args = parser.parse_args()
@@ -144,7 +158,7 @@ def main() -> None:
     rows = []
     for size in args.sizes:
         h, w = (int(x) for x in size.split("x"))
-        res = {kind: measure(kind, h, w, args) for kind in KINDS}
+        res = measure(h, w, args)
         rows.append((size, res))
         print(f"{size}: {res}", file=sys.stderr)
 
@@ -170,16 +184,16 @@ def main() -> None:
     header = (
         f"Machine: {machine(args.device)}; torch {torch.__version__}; device {args.device}; "
         f"chunk_size {args.chunk_size}; "
-        f"train batch {args.batch_size}; median of {args.train_repeats} train steps and "
-        f"{args.latency_repeats} select_action calls after {args.warmup} warm-up calls.\n"
+        f"train batch {args.batch_size}; medians of {args.train_repeats} train steps, "
+        f"{args.latency_repeats} select_action calls and {args.queue_repeats} chunks in queue mode, after "
+        f"{args.warmup} warm-up calls; the policies take turns in every round.\n"
         f"Command: python benchmarks/bench_policy.py {' '.join(sys.argv[1:])}\n"
         "Ratios: samples/s VIB/ACT (above 1: VIB trains faster); times VIB/ACT (below 1: VIB acts faster).\n"
     )
-    table = header + "\n" + "\n".join(lines) + "\n"
-    print(table)
-    if args.output:
-        args.output.parent.mkdir(parents=True, exist_ok=True)
-        args.output.write_text(table)
+    lines += ["", "VIB network pass at batch 1:", "", "| image | encoder ms | action transformer ms |"]
+    lines += ["| --- | ---: | ---: |"]
+    lines += [f"| {size} | {res['vib']['encoder_ms']:.1f} | {res['vib']['decoder_ms']:.1f} |" for size, res in rows]
+    emit(header + "\n" + "\n".join(lines) + "\n", args.output)
 
 
 if __name__ == "__main__":

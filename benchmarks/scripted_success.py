@@ -12,6 +12,8 @@ import argparse
 import sys
 from pathlib import Path
 
+from report import emit
+
 from lerobot_vib.sim.recorder import replay_max_reward
 from lerobot_vib.sim.scripted import script_episode
 
@@ -38,10 +40,7 @@ def main() -> None:
             f"| {task} | {seeds.start}-{seeds.stop - 1} | {n_ok} | {100 * n_ok / len(seeds):.0f}% | {failed} |"
         )
         print(lines[-1], file=sys.stderr)
-    table = "\n".join(lines) + "\n"
-    print(table)
-    if args.output:
-        args.output.write_text(table)
+    emit("\n".join(lines) + "\n", args.output)
 
 
 if __name__ == "__main__":

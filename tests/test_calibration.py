@@ -115,6 +115,9 @@ def test_calibration_statistics_equal_a_direct_computation(tiny_policy, tiny_dat
     expected_gamma = 1 + 2 * float(rates.std(unbiased=False)) / float(rates.mean())
     assert calibration.gamma == pytest.approx(expected_gamma, rel=1e-4)
     assert calibration.gamma_method == "mean_plus_2std"
+    u = rates / rates.mean()
+    assert calibration.frames_above_gamma == pytest.approx(float((u > calibration.gamma).double().mean()))
+    assert calibration.episodes_above_gamma == float(u.max() > calibration.gamma)  # one episode
 
 
 def test_conformal_calibration_uses_the_held_out_episodes_maxima(tiny_policy, tiny_dataset_root):

@@ -77,6 +77,9 @@ class CalibrationConfig:
         gamma_method: "mean_plus_2std" (paper) or "conformal".
         conformal_alpha: Target per-episode false-stop rate of the conformal threshold.
         conformal_episodes: The held-out episodes the conformal threshold was computed on.
+        frames_above_gamma: Fraction of the calibration frames with u > gamma.
+        episodes_above_gamma: Fraction of the calibration episodes with u > gamma at some frame: the
+            in-sample rate of episodes the threshold stop would interrupt.
     """
 
     dataset_repo_id: str | None = None
@@ -89,6 +92,8 @@ class CalibrationConfig:
     gamma_method: str | None = None
     conformal_alpha: float | None = None
     conformal_episodes: list[int] | None = None
+    frames_above_gamma: float | None = None
+    episodes_above_gamma: float | None = None
 
 
 @PreTrainedConfig.register_subclass("vib")

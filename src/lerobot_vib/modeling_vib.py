@@ -321,8 +321,11 @@ class VIBPolicy(PreTrainedPolicy):
                 "or run `lerobot-vib-calibrate` on its training data."
             )
         safety = self.config.safety
-        if safety.action == "home" or safety.home_pose is not None:
-            self.robot_units.to_robot(ACTION, torch.zeros(1, self.config.action_feature.shape[0]))  # stats known?
+        if (safety.action == "home" or safety.home_pose is not None) and not self.robot_units.known(ACTION):
+            raise RuntimeError(
+                "`safety.home_pose` is in robot units, but the policy lacks the action normalization statistics "
+                "to convert it: build the policy with `dataset_stats` (lerobot-train does) or use `hold`."
+            )
         gamma = self.stop_threshold() if safety.enabled else None
         if gamma is not None and not math.isfinite(gamma):
             raise RuntimeError("The safety stop is enabled but its threshold gamma is unknown: set `safety.gamma`.")
@@ -347,7 +350,9 @@ class VIBPolicy(PreTrainedPolicy):
             if tuple(value.shape[1:]) != tuple(ft.shape):
                 raise ValueError(
                     f"`{key}` has shape {tuple(value.shape)}; expected (batch, {', '.join(map(str, ft.shape))}) "
-                    "as configured. Check the camera resolution / state size against the training data."
+                    "as configured. Check the camera resolution / state size against the training data (in the "
+                    "ALOHA sim, `--env.type=aloha_fast --env.observation_height=H --env.observation_width=W` "
+                    "renders at the training size)."
                 )
             if batch_size is None:
                 batch_size = value.shape[0]
@@ -391,9 +396,7 @@ class VIBPolicy(PreTrainedPolicy):
         batch_size = self._check_observation(batch)
         if self._monitor is None:
             self._start_episode()
-        obs_finite = torch.ones(batch_size, dtype=torch.bool, device=self.config.device)
-        for key in self._used_inputs:
-            obs_finite &= torch.isfinite(batch[key]).flatten(1).all(dim=1).to(obs_finite.device)
+        obs_finite = torch.stack([torch.isfinite(batch[k]).flatten(1).all(dim=1) for k in self._used_inputs]).all(0)
 
         if self._reuse_last_plan_uncertainty():
             posterior, rate, u = None, self.last_step.rate, self.last_step.u

@@ -138,6 +138,9 @@ def calibrate(
         calibration.gamma_method = "conformal"
         calibration.conformal_alpha = conformal_alpha
         calibration.conformal_episodes = sorted(set(held_out.episode_index.tolist()))
+    u = stats.rates / stats.mean
+    calibration.frames_above_gamma = float((u > calibration.gamma).double().mean())
+    calibration.episodes_above_gamma = float((stats.episode_max(stats.mean) > calibration.gamma).double().mean())
     return calibration
 
 
@@ -186,7 +189,8 @@ def calibrate_main(cfg: CalibrateConfig) -> CalibrationConfig:
         f"{calibration.dataset_repo_id}:\n  R_bar={calibration.rate_mean:.6g}  std={calibration.rate_std:.4g}  "
         f"{quantiles}\n  gamma={calibration.gamma:.4f} ({calibration.gamma_method}"
         + (f", alpha={calibration.conformal_alpha}" if calibration.conformal_alpha is not None else "")
-        + ")"
+        + f")\n  on these frames: u > gamma on {100 * calibration.frames_above_gamma:.1f}% of frames and in "
+        f"{100 * calibration.episodes_above_gamma:.0f}% of episodes (a stop would interrupt them)"
     )
     return calibration
 
