@@ -108,10 +108,28 @@ def main() -> None:
         ]
     )
 
+    trace_dir = args.out / "uncertainty"
+    run(
+        [
+            sys.executable,
+            str(Path(__file__).with_name("rollout_uncertainty.py")),
+            f"--policy_path={ckpt}",
+            "--occlude=150:230",
+            "--safety",
+            f"--device={args.device}",
+            f"--out={trace_dir}",
+        ]
+    )
+
     overall = json.loads((eval_dir / "eval_info.json").read_text())["overall"]
+    trace = json.loads((trace_dir / "summary.json").read_text())
     print(
-        f"\nDataset: {data}\nCheckpoint: {ckpt}\nEval: success {overall['pc_success']:.0f}% over "
-        f"{overall['n_episodes']} episode(s), video {overall['video_paths'][0]}"
+        f"\nDataset: {data}\nCheckpoint (calibrated): {ckpt}\n"
+        f"Eval: success {overall['pc_success']:.0f}% over {overall['n_episodes']} episode(s), "
+        f"video {overall['video_paths'][0]}\n"
+        f"Uncertainty trace: {trace_dir}/trace.png; mean u on clean steps {trace['mean_u_clean']:.2f}, on "
+        f"occluded steps {trace['mean_u_occluded']:.2f}, gamma {trace['gamma']:.2f}, "
+        f"safety stops at steps {trace['stop_intervals']}"
     )
 
 
