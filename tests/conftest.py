@@ -9,6 +9,7 @@ os.environ.setdefault("MUJOCO_GL", "egl")
 os.environ.setdefault("HF_HUB_OFFLINE", "1")
 sys.path.insert(0, str(Path(__file__).parent))
 
+from helpers import BIN, TRAIN_ARGS, run
 from tiny_dataset import write_tiny_dataset
 
 
@@ -23,8 +24,6 @@ def tiny_dataset_root(tmp_path_factory) -> Path:
 @pytest.fixture(scope="session")
 def tiny_checkpoint(tiny_dataset_root, tmp_path_factory) -> Path:
     """A VIB checkpoint from a 2-step lerobot-train run on the tiny dataset."""
-    from test_lerobot_integration import BIN, TRAIN_ARGS, run
-
     out = tmp_path_factory.mktemp("tiny_train") / "run"
     run(
         [

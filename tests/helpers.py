@@ -2,10 +2,43 @@
 
 from __future__ import annotations
 
+import os
+import subprocess
+import sys
+from pathlib import Path
+
 import torch
 from lerobot.configs.types import FeatureType, PolicyFeature
 
 from lerobot_vib.configuration_vib import VIBConfig
+
+BIN = Path(sys.executable).parent
+# Small enough for a CPU: a handful of steps at batch 2.
+TRAIN_ARGS = [
+    "--policy.type=vib",
+    "--policy.device=cpu",
+    "--policy.push_to_hub=false",
+    "--policy.pretrained_backbone_weights=null",
+    "--policy.chunk_size=8",
+    "--policy.n_action_steps=8",
+    "--policy.dim_model=64",
+    "--policy.dim_feedforward=128",
+    "--policy.n_layers=2",
+    "--wandb.enable=false",
+    "--num_workers=0",
+    "--batch_size=2",
+    "--log_freq=1",
+]
+
+
+def run(cmd: list[str], timeout: int = 600, **kwargs) -> str:
+    """Run a command line (a LeRobot or lerobot-vib console script), fail with its output's tail."""
+    env = {**os.environ, "MUJOCO_GL": "egl", "HF_HUB_OFFLINE": "1"}
+    proc = subprocess.run(cmd, capture_output=True, text=True, timeout=timeout, env=env, **kwargs)
+    out = proc.stdout + proc.stderr
+    assert proc.returncode == 0, f"{cmd[0]} failed ({proc.returncode}):\n{out[-6000:]}"
+    return out
+
 
 SMALL = dict(
     chunk_size=6,

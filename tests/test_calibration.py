@@ -8,13 +8,12 @@ import torch
 from lerobot.datasets.lerobot_dataset import LeRobotDataset
 from lerobot.utils.feature_utils import dataset_to_policy_features
 
-from helpers import SMALL, make_batch, make_config
+from helpers import BIN, SMALL, make_batch, make_config, run
 from lerobot_vib.calibration import RateTracker, conformal_gamma, mean_plus_2std_gamma
 from lerobot_vib.configuration_vib import VIBConfig
 from lerobot_vib.modeling_vib import VIBPolicy
 from lerobot_vib.processor_vib import make_vib_pre_post_processors
 from lerobot_vib.scripts.calibrate import calibrate
-from test_lerobot_integration import BIN, run
 
 
 def test_running_statistics_are_debiased_moments():

@@ -4,8 +4,6 @@ multi-process training and the files a Hub push would upload."""
 from __future__ import annotations
 
 import json
-import os
-import subprocess
 import sys
 import textwrap
 from pathlib import Path
@@ -16,35 +14,9 @@ from lerobot.datasets.lerobot_dataset import LeRobotDataset
 from lerobot.policies.factory import make_pre_post_processors
 from safetensors.torch import load_file
 
-from helpers import make_batch, make_config
+from helpers import BIN, TRAIN_ARGS, make_batch, make_config, run
 from lerobot_vib.modeling_vib import VIBPolicy
 from tiny_dataset import write_tiny_dataset
-
-BIN = Path(sys.executable).parent
-# Small enough for a CPU: a handful of steps at batch 2.
-TRAIN_ARGS = [
-    "--policy.type=vib",
-    "--policy.device=cpu",
-    "--policy.push_to_hub=false",
-    "--policy.pretrained_backbone_weights=null",
-    "--policy.chunk_size=8",
-    "--policy.n_action_steps=8",
-    "--policy.dim_model=64",
-    "--policy.dim_feedforward=128",
-    "--policy.n_layers=2",
-    "--wandb.enable=false",
-    "--num_workers=0",
-    "--batch_size=2",
-    "--log_freq=1",
-]
-
-
-def run(cmd: list[str], timeout: int = 600, **kwargs) -> str:
-    env = {**os.environ, "MUJOCO_GL": "egl", "HF_HUB_OFFLINE": "1"}
-    proc = subprocess.run(cmd, capture_output=True, text=True, timeout=timeout, env=env, **kwargs)
-    out = proc.stdout + proc.stderr
-    assert proc.returncode == 0, f"{cmd[0]} failed ({proc.returncode}):\n{out[-6000:]}"
-    return out
 
 
 @pytest.fixture(scope="module")

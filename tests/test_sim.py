@@ -11,6 +11,7 @@ import numpy as np
 import pytest
 from lerobot.datasets.lerobot_dataset import LeRobotDataset
 
+from helpers import BIN, TRAIN_ARGS, run
 from lerobot_vib.sim.aloha_env import FastAlohaEnv
 from lerobot_vib.sim.recorder import (
     SIDECAR,
@@ -20,7 +21,6 @@ from lerobot_vib.sim.recorder import (
     replay_max_reward,
 )
 from lerobot_vib.sim.scripted import object_pose, script_episode
-from test_lerobot_integration import BIN, TRAIN_ARGS, run
 
 SMALL = dict(image_height=48, image_width=64, cameras=["top"], shadows=False, use_videos=True)
 
