@@ -2,6 +2,7 @@
 
 import json
 import math
+import os
 
 import pytest
 import torch
@@ -181,3 +182,41 @@ def test_calibrate_command_writes_the_statistics_into_the_checkpoint(tiny_checkp
         "calibration" not in json.loads((ckpt / "config.json").read_text())
         or json.loads((ckpt / "config.json").read_text())["calibration"]["rate_mean"] is None
     )  # the source checkpoint is untouched
+
+
+@pytest.mark.parametrize(
+    ("args", "message"),
+    [
+        (["--policy.path={missing}"], "No such checkpoint: {missing} is not a folder"),
+        (["--episodes=[0,99]"], "`--episodes`: episode 99 is not in this dataset (it has 0-1)"),
+        (["--conformal_alpha=1.5", "--conformal_episodes=[1]"], "`--conformal_alpha` must be in (0, 1), got 1.5"),
+        (
+            ["--conformal_alpha=0.05", "--conformal_episodes=[1]"],
+            "needs at least 19 held-out episodes; `--conformal_episodes` has 1",
+        ),
+    ],
+)
+def test_calibrate_names_bad_arguments_before_any_work(args, message, tiny_checkpoint, tiny_dataset_root, tmp_path):
+    import subprocess
+
+    missing = str(tmp_path / "outputs" / "no_such_run" / "pretrained_model")
+    args = [a.format(missing=missing) for a in args]
+    if not any(a.startswith("--policy.path") for a in args):
+        args.append(f"--policy.path={tiny_checkpoint}")
+    proc = subprocess.run(
+        [
+            str(BIN / "lerobot-vib-calibrate"),
+            "--dataset.repo_id=local/tiny",
+            f"--dataset.root={tiny_dataset_root}",
+            f"--output_dir={tmp_path / 'out'}",
+            *args,
+        ],
+        capture_output=True,
+        text=True,
+        env={**os.environ, "HF_HUB_OFFLINE": "1"},
+        timeout=300,
+    )
+    assert proc.returncode != 0
+    assert message.format(missing=missing) in proc.stderr, proc.stderr[-2000:]
+    assert "Traceback" not in proc.stderr and "Loading weights" not in proc.stderr
+    assert not (tmp_path / "out").exists()

@@ -8,7 +8,7 @@ import pytest
 from lerobot.configs.policies import PreTrainedConfig
 
 from helpers import make_config
-from lerobot_vib.configuration_vib import VIBConfig
+from lerobot_vib.configuration_vib import VIBConfig, VIBConfigError
 
 CONFIG_JSON = Path(__file__).parents[1] / "configs" / "policy" / "vib.json"
 
@@ -47,7 +47,7 @@ def test_safety_and_calibration_survive_save_and_load_with_cli_overrides(tmp_pat
 def test_bad_safety_settings(safety, message):
     from lerobot_vib.configuration_vib import SafetyConfig
 
-    with pytest.raises(ValueError, match=message):
+    with pytest.raises(VIBConfigError, match=message):
         SafetyConfig(**safety)
 
 

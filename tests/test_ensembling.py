@@ -7,6 +7,7 @@ import torch
 from lerobot.policies.act.modeling_act import ACTTemporalEnsembler
 
 from helpers import make_batch, make_config, with_rate_statistics
+from lerobot_vib.configuration_vib import VIBConfigError
 from lerobot_vib.ensembling import UncertaintyWeightedEnsembler
 from lerobot_vib.modeling_vib import VIBPolicy
 
@@ -80,5 +81,5 @@ def test_policy_act_mode_is_lerobots_ensembler_and_uncertainty_mode_uses_u():
 
 
 def test_ensembling_needs_one_action_step():
-    with pytest.raises(ValueError, match="n_action_steps=1"):
+    with pytest.raises(VIBConfigError, match="n_action_steps=1"):
         make_config(chunk_size=5, n_action_steps=5, temporal_ensemble="uncertainty")

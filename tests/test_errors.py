@@ -7,7 +7,7 @@ import torch
 from lerobot.configs.types import FeatureType, PolicyFeature
 
 from helpers import make_batch, make_config, with_rate_statistics
-from lerobot_vib.configuration_vib import VIBConfig
+from lerobot_vib.configuration_vib import VIBConfig, VIBConfigError
 from lerobot_vib.modeling_vib import VIBPolicy
 
 
@@ -25,7 +25,7 @@ from lerobot_vib.modeling_vib import VIBPolicy
     ],
 )
 def test_bad_config_values(overrides, message):
-    with pytest.raises(ValueError, match=message):
+    with pytest.raises(VIBConfigError, match=message):
         make_config(**overrides)
 
 
@@ -135,7 +135,7 @@ def test_offline_imagenet_weights_error_names_the_fix(monkeypatch):
 
 def test_from_pretrained_does_not_fetch_imagenet_weights(monkeypatch, tmp_path):
     """The checkpoint holds the trained backbone: loading it must work offline with the ImageNet default."""
-    config = make_config()
+    config = make_config(backbone_norm="frozen_bn")
     policy = VIBPolicy(config).eval()
     policy.config.pretrained_backbone_weights = "ResNet18_Weights.IMAGENET1K_V1"
     policy.save_pretrained(tmp_path)
@@ -148,3 +148,74 @@ def test_from_pretrained_does_not_fetch_imagenet_weights(monkeypatch, tmp_path):
     assert loaded.config.pretrained_backbone_weights == "ResNet18_Weights.IMAGENET1K_V1"
     obs = make_batch(config, with_action=False)
     torch.testing.assert_close(loaded.predict_action_chunk(obs), policy.predict_action_chunk(obs))
+
+
+@pytest.mark.parametrize(
+    ("flag", "message"),
+    [
+        ("--policy.beta=-1", "`beta` must be >= 0, got -1"),
+        ("--policy.temporal_ensemble=bogus", "`temporal_ensemble` must be one of ('none', 'act', 'uncertainty')"),
+        ("--policy.safety.action=bogus", "`safety.action` must be one of ('hold', 'home')"),
+        ("--policy.calibration.gamma=-1", "`calibration.gamma` must be a positive finite number"),
+    ],
+)
+def test_bad_values_are_named_on_the_command_line(flag, message, tmp_path):
+    """draccus would otherwise print only "Couldn't instantiate class VIBConfig"."""
+    import subprocess
+
+    from helpers import BIN
+
+    proc = subprocess.run(
+        [
+            str(BIN / "lerobot-train"),
+            "--policy.type=vib",
+            flag,
+            "--dataset.repo_id=local/x",
+            f"--output_dir={tmp_path}",
+        ],
+        capture_output=True,
+        text=True,
+        env={**__import__("os").environ, "HF_HUB_OFFLINE": "1"},
+        timeout=300,
+    )
+    assert proc.returncode != 0 and message in proc.stderr, proc.stderr[-2000:]
+
+
+@pytest.mark.parametrize("dtype", [torch.uint8, torch.float64])
+def test_observations_of_the_wrong_dtype_name_key_and_dtype(policy, dtype):
+    obs = make_batch(policy.config, with_action=False)
+    obs["observation.images.top"] = (obs["observation.images.top"] * 255).to(dtype)
+    with pytest.raises(
+        TypeError, match=rf"`observation.images.top` has dtype {dtype}; the policy expects torch.float32"
+    ):
+        policy.select_action(obs)
+
+
+@pytest.mark.parametrize("every_step", [True, False])
+def test_a_batch_size_change_without_reset_is_an_error(every_step):
+    """It used to return the old batch's queued (2, action_dim) action for a batch of 1."""
+    policy = with_rate_statistics(VIBPolicy(make_config(uncertainty_every_step=every_step)))
+    policy.select_action(make_batch(policy.config, batch_size=2, with_action=False))
+    with pytest.raises(ValueError, match=r"batch size changed from 2 to 1.*reset"):
+        policy.select_action(make_batch(policy.config, batch_size=1, with_action=False))
+    policy.reset()
+    assert policy.select_action(make_batch(policy.config, batch_size=1, with_action=False)).shape == (1, 3)
+
+
+@pytest.mark.parametrize("gamma", [-1.0, 0.0, float("nan"), float("inf")])
+def test_a_threshold_that_could_never_resume_is_refused(gamma):
+    from lerobot_vib.configuration_vib import CalibrationConfig, SafetyConfig
+
+    with pytest.raises(VIBConfigError, match=r"calibration\.gamma"):
+        CalibrationConfig(gamma=gamma)
+    with pytest.raises(VIBConfigError, match=r"safety\.gamma"):
+        SafetyConfig(enabled=True, gamma=gamma)
+
+
+def test_a_threshold_below_the_training_mean_warns_at_episode_start(caplog):
+    config = make_config()
+    config.safety.enabled, config.safety.gamma = True, 0.5
+    policy = with_rate_statistics(VIBPolicy(config))
+    with caplog.at_level("WARNING"):
+        policy._start_episode()  # what the first `select_action` of an episode does
+    assert "gamma = 0.5 is below 1" in caplog.text

@@ -69,18 +69,24 @@ def mean_plus_2std_gamma(rate_mean: float, rate_std: float) -> float:
     return 1.0 + 2.0 * rate_std / rate_mean
 
 
-def conformal_gamma(scores: Tensor, alpha: float) -> float:
-    """Split-conformal threshold: the ceil((n + 1)(1 - alpha))-th smallest of the n scores."""
+def conformal_min_scores(alpha: float) -> int:
+    """The fewest scores n with ceil((n + 1)(1 - alpha)) <= n, below which no conformal threshold exists."""
     if not 0 < alpha < 1:
         raise ValueError(f"alpha must be in (0, 1), got {alpha}.")
+    n = max(math.ceil(1 / alpha) - 2, 1)
+    while math.ceil((n + 1) * (1 - alpha)) > n:
+        n += 1
+    return n
+
+
+def conformal_gamma(scores: Tensor, alpha: float) -> float:
+    """Split-conformal threshold: the ceil((n + 1)(1 - alpha))-th smallest of the n scores."""
+    needed = conformal_min_scores(alpha)
     scores = torch.as_tensor(scores, dtype=torch.float64).flatten()
     n = scores.numel()
     k = math.ceil((n + 1) * (1 - alpha))
-    if k > n:
-        raise ValueError(
-            f"A conformal threshold at alpha={alpha} needs at least {math.ceil(1 / alpha) - 1} held-out episodes; "
-            f"got {n}."
-        )
+    if n < needed:
+        raise ValueError(f"A conformal threshold at alpha={alpha} needs at least {needed} held-out episodes; got {n}.")
     if not torch.isfinite(scores).all():
         raise ValueError("Conformal scores contain NaN or inf: check the held-out episodes' observations.")
     return float(torch.sort(scores).values[k - 1])

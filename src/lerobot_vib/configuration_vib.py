@@ -2,16 +2,33 @@
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass, field
 
+from draccus.utils import ParsingError
 from lerobot.configs import FeatureType, NormalizationMode, PreTrainedConfig
 from lerobot.optim import AdamWConfig
 from lerobot.utils.constants import ACTION, OBS_STATE
+
+from .backbone import BACKBONE_NORMS
 
 IMAGE_POOLINGS = ("spatial_softmax", "avg")
 POSITION_EMBEDDINGS = ("learned", "sinusoidal")
 TEMPORAL_ENSEMBLES = ("none", "act", "uncertainty")
 SAFETY_ACTIONS = ("hold", "home")
+
+
+class VIBConfigError(ParsingError):
+    """A bad configuration value, named with its allowed values.
+
+    A draccus `ParsingError` rather than a `ValueError`: draccus replaces the message of a `ValueError` raised
+    while it builds a config with "Couldn't instantiate class VIBConfig", so the command line would not say
+    which field is wrong; the text of a `ParsingError` reaches the user.
+    """
+
+
+# The trunk's normalization when it is trained from scratch: the best of `benchmarks/backbone_norm.py`.
+SCRATCH_BACKBONE_NORM = "group_norm"
 
 
 @dataclass
@@ -48,17 +65,17 @@ class SafetyConfig:
 
     def __post_init__(self):
         if self.action not in SAFETY_ACTIONS:
-            raise ValueError(f"`safety.action` must be one of {SAFETY_ACTIONS}, got {self.action!r}.")
+            raise VIBConfigError(f"`safety.action` must be one of {SAFETY_ACTIONS}, got {self.action!r}.")
         if self.action == "home" and self.home_pose is None:
-            raise ValueError("`safety.action=home` needs `safety.home_pose` (the home action in robot units).")
+            raise VIBConfigError("`safety.action=home` needs `safety.home_pose` (the home action in robot units).")
         if self.resume_steps < 1:
-            raise ValueError(f"`safety.resume_steps` must be >= 1, got {self.resume_steps}.")
+            raise VIBConfigError(f"`safety.resume_steps` must be >= 1, got {self.resume_steps}.")
         if not self.home_max_step > 0:
-            raise ValueError(f"`safety.home_max_step` must be > 0, got {self.home_max_step}.")
+            raise VIBConfigError(f"`safety.home_max_step` must be > 0, got {self.home_max_step}.")
         for name in ("gamma", "resume_threshold"):
             value = getattr(self, name)
-            if value is not None and not value > 0:
-                raise ValueError(f"`safety.{name}` must be a positive number, got {value}.")
+            if value is not None and not (math.isfinite(value) and value > 0):
+                raise VIBConfigError(f"`safety.{name}` must be a positive finite number, got {value}.")
 
 
 @dataclass
@@ -95,6 +112,14 @@ class CalibrationConfig:
     frames_above_gamma: float | None = None
     episodes_above_gamma: float | None = None
 
+    def __post_init__(self):
+        for name in ("rate_mean", "gamma"):
+            value = getattr(self, name)
+            if value is not None and not (math.isfinite(value) and value > 0):
+                raise VIBConfigError(f"`calibration.{name}` must be a positive finite number, got {value}.")
+        if self.rate_std is not None and not (math.isfinite(self.rate_std) and self.rate_std >= 0):
+            raise VIBConfigError(f"`calibration.rate_std` must be a finite number >= 0, got {self.rate_std}.")
+
 
 @PreTrainedConfig.register_subclass("vib")
 @dataclass
@@ -120,9 +145,16 @@ class VIBConfig(PreTrainedConfig):
             (ACT's action queue). At most `chunk_size`.
         normalization_mapping: Normalization mode per feature type (LeRobot's normalizer processor).
         vision_backbone: torchvision ResNet used for every camera (one shared trunk), as in ACT.
-        pretrained_backbone_weights: torchvision weights for the backbone, ACT's semantics:
-            "ResNet18_Weights.IMAGENET1K_V1" by default, `None` (`null` on the command line) to train the
-            trunk from scratch. Loading needs the weights in the torch hub cache or a network connection.
+        pretrained_backbone_weights: Initial weights of the backbone: a torchvision weights name
+            ("ResNet18_Weights.IMAGENET1K_V1", the default, as ACT; needs the torch hub cache or a network
+            connection), a local file holding a torchvision ResNet state dict (`.pth`, `.pt`, `.safetensors`;
+            for offline machines), or `None` (`null` on the command line) to train the trunk from scratch.
+            A checkpoint never reloads them: its own weights replace them.
+        backbone_norm: Normalization layers of the trunk (`backbone.py`): "frozen_bn" (ACT's frozen batch
+            norm, which keeps pretrained statistics and is the identity from scratch), "batch_norm" (trained
+            batch norm) or "group_norm" (Diffusion Policy's choice from scratch). None: "frozen_bn" with
+            pretrained weights, else the best measured from scratch (`SCRATCH_BACKBONE_NORM`). The resolved
+            value is saved with the checkpoint, so loading builds the same layers.
         replace_final_stride_with_dilation: Replace the ResNet's final stride with a dilation (ACT's option);
             doubles the feature map size.
         image_pooling: How a camera's ResNet feature map becomes a feature vector.
@@ -182,6 +214,7 @@ class VIBConfig(PreTrainedConfig):
     # Encoder p(z|s).
     vision_backbone: str = "resnet18"
     pretrained_backbone_weights: str | None = "ResNet18_Weights.IMAGENET1K_V1"
+    backbone_norm: str | None = None
     replace_final_stride_with_dilation: bool = False
     image_pooling: str = "spatial_softmax"
     spatial_softmax_num_keypoints: int = 32
@@ -220,35 +253,45 @@ class VIBConfig(PreTrainedConfig):
     def __post_init__(self):
         super().__post_init__()
         if not self.vision_backbone.startswith("resnet"):
-            raise ValueError(f"`vision_backbone` must be a torchvision ResNet, got {self.vision_backbone!r}.")
+            raise VIBConfigError(f"`vision_backbone` must be a torchvision ResNet, got {self.vision_backbone!r}.")
+        if self.backbone_norm is None:
+            self.backbone_norm = "frozen_bn" if self.pretrained_backbone_weights else SCRATCH_BACKBONE_NORM
+        if self.backbone_norm not in BACKBONE_NORMS:
+            raise VIBConfigError(f"`backbone_norm` must be one of {BACKBONE_NORMS}, got {self.backbone_norm!r}.")
+        if self.backbone_norm == "group_norm" and self.pretrained_backbone_weights:
+            raise VIBConfigError(
+                "`backbone_norm=group_norm` cannot use `pretrained_backbone_weights` "
+                f"({self.pretrained_backbone_weights!r}): they were trained with batch norm. Use frozen_bn or "
+                "batch_norm with pretrained weights, or `--policy.pretrained_backbone_weights=null`."
+            )
         if self.image_pooling not in IMAGE_POOLINGS:
-            raise ValueError(f"`image_pooling` must be one of {IMAGE_POOLINGS}, got {self.image_pooling!r}.")
+            raise VIBConfigError(f"`image_pooling` must be one of {IMAGE_POOLINGS}, got {self.image_pooling!r}.")
         if self.position_embedding not in POSITION_EMBEDDINGS:
-            raise ValueError(
+            raise VIBConfigError(
                 f"`position_embedding` must be one of {POSITION_EMBEDDINGS}, got {self.position_embedding!r}."
             )
         if self.n_obs_steps != 1:
-            raise ValueError(f"Only `n_obs_steps=1` is supported, got {self.n_obs_steps}.")
+            raise VIBConfigError(f"Only `n_obs_steps=1` is supported, got {self.n_obs_steps}.")
         for name in ("chunk_size", "n_action_steps", "n_state_tokens", "d_token", "latent_dim", "n_layers"):
             if getattr(self, name) < 1:
-                raise ValueError(f"`{name}` must be >= 1, got {getattr(self, name)}.")
+                raise VIBConfigError(f"`{name}` must be >= 1, got {getattr(self, name)}.")
         if self.n_action_steps > self.chunk_size:
-            raise ValueError(
+            raise VIBConfigError(
                 f"`n_action_steps` ({self.n_action_steps}) cannot exceed `chunk_size` ({self.chunk_size}): "
                 "a forward pass only predicts `chunk_size` actions."
             )
         if self.dim_model % self.n_heads != 0:
-            raise ValueError(f"`dim_model` ({self.dim_model}) must be divisible by `n_heads` ({self.n_heads}).")
+            raise VIBConfigError(f"`dim_model` ({self.dim_model}) must be divisible by `n_heads` ({self.n_heads}).")
         if self.beta < 0:
-            raise ValueError(f"`beta` must be >= 0, got {self.beta}.")
+            raise VIBConfigError(f"`beta` must be >= 0, got {self.beta}.")
         if not 0 < self.rate_momentum <= 1:
-            raise ValueError(f"`rate_momentum` must be in (0, 1], got {self.rate_momentum}.")
+            raise VIBConfigError(f"`rate_momentum` must be in (0, 1], got {self.rate_momentum}.")
         if self.temporal_ensemble not in TEMPORAL_ENSEMBLES:
-            raise ValueError(
+            raise VIBConfigError(
                 f"`temporal_ensemble` must be one of {TEMPORAL_ENSEMBLES}, got {self.temporal_ensemble!r}."
             )
         if self.temporal_ensemble != "none" and self.n_action_steps != 1:
-            raise ValueError(
+            raise VIBConfigError(
                 f"`temporal_ensemble={self.temporal_ensemble}` needs `n_action_steps=1`: the policy must be "
                 f"queried every step to ensemble (got n_action_steps={self.n_action_steps})."
             )

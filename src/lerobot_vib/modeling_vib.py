@@ -27,16 +27,14 @@ from typing import Any
 
 import torch
 import torch.nn.functional as F
-import torchvision
 from huggingface_hub import ModelCard
 from lerobot.policies.act.modeling_act import ACTEncoder, ACTTemporalEnsembler, create_sinusoidal_pos_embedding
 from lerobot.policies.diffusion.modeling_diffusion import SpatialSoftmax
 from lerobot.policies.pretrained import PreTrainedPolicy
 from lerobot.utils.constants import ACTION, OBS_ENV_STATE, OBS_STATE
 from torch import Tensor, nn
-from torchvision.models._utils import IntermediateLayerGetter
-from torchvision.ops.misc import FrozenBatchNorm2d
 
+from .backbone import build_resnet_trunk
 from .bottleneck import GaussianBottleneck, Posterior
 from .calibration import RateTracker, mean_plus_2std_gamma
 from .configuration_vib import VIBConfig
@@ -70,24 +68,12 @@ def _skip_pretrained_backbone() -> Iterator[None]:
         _SKIP_PRETRAINED_BACKBONE.reset(token)
 
 
-def build_resnet_trunk(config: VIBConfig) -> tuple[nn.Module, int]:
-    """ACT's image trunk: a torchvision ResNet up to layer4, frozen batch norm. Returns (trunk, channels)."""
+def build_encoder_trunk(config: VIBConfig) -> tuple[nn.Module, int]:
+    """The configured ResNet trunk (`backbone.py`). Returns (trunk, channels)."""
     weights = None if _SKIP_PRETRAINED_BACKBONE.get() else config.pretrained_backbone_weights
-    try:
-        resnet = getattr(torchvision.models, config.vision_backbone)(
-            replace_stride_with_dilation=[False, False, config.replace_final_stride_with_dilation],
-            weights=weights,
-            norm_layer=FrozenBatchNorm2d,
-        )
-    except OSError as e:  # URLError, connection errors: the weights are neither cached nor downloadable
-        raise RuntimeError(
-            f"Could not load the pretrained backbone weights {weights!r} for {config.vision_backbone} "
-            f"({type(e).__name__}: {e}). They are downloaded by torchvision into the torch hub cache on first "
-            "use; offline, train the backbone from scratch with `--policy.pretrained_backbone_weights=null` "
-            "(or put the weights file in $TORCH_HOME/hub/checkpoints)."
-        ) from e
-    trunk = IntermediateLayerGetter(resnet, return_layers={"layer4": "feature_map"})
-    return trunk, resnet.fc.in_features
+    return build_resnet_trunk(
+        config.vision_backbone, weights, config.backbone_norm, config.replace_final_stride_with_dilation
+    )
 
 
 def _mlp(in_dim: int, hidden_dim: int, out_dim: int) -> nn.Sequential:
@@ -103,10 +89,11 @@ class ObservationEncoder(nn.Module):
         self.camera_keys = list(config.image_features)
         fused_dim = config.n_state_tokens * config.d_token
         if self.camera_keys:
-            self.backbone, channels = build_resnet_trunk(config)
+            self.backbone, channels = build_encoder_trunk(config)
             image_shape = tuple(config.image_features[self.camera_keys[0]].shape)
-            with torch.no_grad():
-                feature_map_shape = tuple(self.backbone(torch.zeros(1, *image_shape))["feature_map"].shape[1:])
+            with torch.no_grad():  # in eval mode: a probe must not touch batch-norm statistics
+                feature_map_shape = tuple(self.backbone.eval()(torch.zeros(1, *image_shape))["feature_map"].shape[1:])
+            self.backbone.train()
             if config.image_pooling == "spatial_softmax":
                 self.pool = SpatialSoftmax(feature_map_shape, num_kp=config.spatial_softmax_num_keypoints)
                 pooled_dim = 2 * config.spatial_softmax_num_keypoints
@@ -292,6 +279,7 @@ class VIBPolicy(PreTrainedPolicy):
         self._u_ensembler = UncertaintyWeightedEnsembler(self.config.temporal_ensemble_coeff, self.config.chunk_size)
         self._monitor: SafetyMonitor | None = None  # built at the first step: thresholds may come from loaded buffers
         self._last_command: Tensor | None = None
+        self._batch_size: int | None = None
         self.last_step = None
 
     # ------------------------------------------------------------------------------------------- uncertainty
@@ -329,6 +317,12 @@ class VIBPolicy(PreTrainedPolicy):
         gamma = self.stop_threshold() if safety.enabled else None
         if gamma is not None and not math.isfinite(gamma):
             raise RuntimeError("The safety stop is enabled but its threshold gamma is unknown: set `safety.gamma`.")
+        if gamma is not None and gamma < 1:
+            logger.warning(
+                "The safety stop's threshold gamma = %.3g is below 1, the mean u of the training data: most "
+                "in-distribution steps will stop the policy. Check `safety.gamma` / `calibration.gamma`.",
+                gamma,
+            )
         resume = safety.resume_threshold if safety.resume_threshold is not None else gamma
         self._monitor = SafetyMonitor(gamma, resume, safety.resume_steps)
 
@@ -347,6 +341,12 @@ class VIBPolicy(PreTrainedPolicy):
             value = batch[key]
             if not isinstance(value, Tensor):
                 raise TypeError(f"`{key}` must be a torch.Tensor, got {type(value).__name__}.")
+            if not value.is_floating_point() or value.dtype != self._param_dtype():
+                hint = " (images as floats in [0, 1], as LeRobot's env processors give them)" if "image" in key else ""
+                raise TypeError(
+                    f"`{key}` has dtype {value.dtype}; the policy expects {self._param_dtype()}{hint}. "
+                    "Pass observations through the policy's preprocessor (make_pre_post_processors)."
+                )
             if tuple(value.shape[1:]) != tuple(ft.shape):
                 raise ValueError(
                     f"`{key}` has shape {tuple(value.shape)}; expected (batch, {', '.join(map(str, ft.shape))}) "
@@ -359,6 +359,9 @@ class VIBPolicy(PreTrainedPolicy):
             elif value.shape[0] != batch_size:
                 raise ValueError(f"`{key}` has batch size {value.shape[0]}, other inputs have {batch_size}.")
         return int(batch_size)
+
+    def _param_dtype(self) -> torch.dtype:
+        return next(self.parameters()).dtype
 
     def _check_training_batch(self, batch: dict[str, Tensor], batch_size: int) -> None:
         if ACTION not in batch:
@@ -394,6 +397,12 @@ class VIBPolicy(PreTrainedPolicy):
         """
         self.eval()
         batch_size = self._check_observation(batch)
+        if self._batch_size is not None and batch_size != self._batch_size:
+            raise ValueError(
+                f"The batch size changed from {self._batch_size} to {batch_size} within an episode: the queued and "
+                "ensembled actions belong to the old batch. Call `policy.reset()` when the environments are reset."
+            )
+        self._batch_size = batch_size
         if self._monitor is None:
             self._start_episode()
         obs_finite = torch.stack([torch.isfinite(batch[k]).flatten(1).all(dim=1) for k in self._used_inputs]).all(0)

@@ -15,18 +15,26 @@ updated in place.
 import logging
 import os
 import shutil
+import sys
 from dataclasses import dataclass
 from pathlib import Path
 
+import huggingface_hub
 import torch
 from lerobot.configs import parser
 from lerobot.configs.policies import PreTrainedConfig
-from lerobot.datasets.lerobot_dataset import LeRobotDataset
+from lerobot.datasets.lerobot_dataset import LeRobotDataset, LeRobotDatasetMetadata
 from lerobot.policies.factory import make_pre_post_processors
 from lerobot.utils.import_utils import register_third_party_plugins
 
-from ..calibration import QUANTILE_LEVELS, conformal_gamma, mean_plus_2std_gamma, rate_statistics
-from ..configuration_vib import CalibrationConfig
+from ..calibration import (
+    QUANTILE_LEVELS,
+    conformal_gamma,
+    conformal_min_scores,
+    mean_plus_2std_gamma,
+    rate_statistics,
+)
+from ..configuration_vib import CalibrationConfig, VIBConfigError
 from ..modeling_vib import VIBPolicy
 
 logger = logging.getLogger(__name__)
@@ -70,17 +78,62 @@ class CalibrateConfig:
     output_dir: Path | None = None
 
     def __post_init__(self):
+        # Arguments first: nothing below may cost minutes before a typo is reported.
+        if (self.conformal_alpha is None) != (self.conformal_episodes is None):
+            raise VIBConfigError("`--conformal_alpha` and `--conformal_episodes` (held-out episodes) go together.")
+        if self.conformal_alpha is not None:
+            if not 0 < self.conformal_alpha < 1:
+                raise VIBConfigError(f"`--conformal_alpha` must be in (0, 1), got {self.conformal_alpha}.")
+            needed = conformal_min_scores(self.conformal_alpha)
+            if len(set(self.conformal_episodes)) < needed:
+                raise VIBConfigError(
+                    f"A conformal threshold at alpha={self.conformal_alpha} needs at least {needed} held-out "
+                    f"episodes; `--conformal_episodes` has {len(set(self.conformal_episodes))}."
+                )
+            if self.episodes is not None and (both := sorted(set(self.conformal_episodes) & set(self.episodes))):
+                raise VIBConfigError(f"Held-out conformal episodes must not be among `--episodes`: {both}.")
+        if self.batch_size < 1:
+            raise VIBConfigError(f"`--batch_size` must be >= 1, got {self.batch_size}.")
         policy_path = parser.get_path_arg("policy")
         if policy_path:
+            _check_checkpoint(policy_path)
             cli_overrides = parser.get_cli_overrides("policy") or []
             self.policy = PreTrainedConfig.from_pretrained(policy_path, cli_overrides=cli_overrides)
             self.policy.pretrained_path = Path(policy_path)
-        if (self.conformal_alpha is None) != (self.conformal_episodes is None):
-            raise ValueError("`--conformal_alpha` and `--conformal_episodes` (held-out episodes) go together.")
 
     @classmethod
     def __get_path_fields__(cls) -> list[str]:
         return ["policy"]
+
+
+def _check_checkpoint(path: str) -> None:
+    """A clear error for a checkpoint that is neither a local folder nor reachable on the Hub."""
+    local = Path(path)
+    if local.is_dir():
+        if not (local / "config.json").is_file():
+            raise VIBConfigError(
+                f"No checkpoint at {path}: the folder has no config.json (a `pretrained_model` folder)."
+            )
+        return
+    looks_like_repo_id = path.count("/") == 1 and not path.startswith((".", "/", "~"))
+    if not looks_like_repo_id:
+        raise VIBConfigError(f"No such checkpoint: {path} is not a folder (nor a Hub id like user/name).")
+    if huggingface_hub.constants.HF_HUB_OFFLINE:
+        raise VIBConfigError(
+            f"No such checkpoint: {path} is not a local folder, and the Hub is offline (HF_HUB_OFFLINE)."
+        )
+
+
+def check_episodes(total_episodes: int, **named: list[int] | None) -> None:
+    """Every requested episode must be in the dataset (episodes 0 .. total_episodes - 1)."""
+    for name, episodes in named.items():
+        missing = sorted(e for e in episodes or [] if not 0 <= e < total_episodes)
+        if missing:
+            listed = ", ".join(map(str, missing[:5])) + (" ..." if len(missing) > 5 else "")
+            raise VIBConfigError(
+                f"`--{name}`: episode{'s' if len(missing) > 1 else ''} {listed} "
+                f"{'are' if len(missing) > 1 else 'is'} not in this dataset (it has 0-{total_episodes - 1})."
+            )
 
 
 def _loader(repo_id: str, root, episodes, revision, video_backend, batch_size, num_workers, needed: list[str]):
@@ -147,17 +200,19 @@ def calibrate(
 @parser.wrap()
 def calibrate_main(cfg: CalibrateConfig) -> CalibrationConfig:
     if cfg.policy is None:
-        raise ValueError("Pass the checkpoint to calibrate with `--policy.path=...`.")
+        raise VIBConfigError("Pass the checkpoint to calibrate with `--policy.path=...`.")
     if cfg.policy.type != "vib":
-        raise ValueError(
+        raise VIBConfigError(
             f"lerobot-vib-calibrate calibrates VIB policies; {cfg.policy.pretrained_path} is a "
             f"{cfg.policy.type!r} policy."
         )
+    meta = LeRobotDatasetMetadata(cfg.dataset.repo_id, root=cfg.dataset.root, revision=cfg.dataset.revision)
+    check_episodes(meta.total_episodes, episodes=cfg.episodes, conformal_episodes=cfg.conformal_episodes)
     source = Path(cfg.policy.pretrained_path)
     output_dir = cfg.output_dir
     if output_dir is None:
         if not source.is_dir():
-            raise ValueError(f"{source} is not a local checkpoint: pass `--output_dir` for the calibrated copy.")
+            raise VIBConfigError(f"{source} is not a local checkpoint: pass `--output_dir` for the calibrated copy.")
         output_dir = source
     policy = VIBPolicy.from_pretrained(source, config=cfg.policy)
     preprocessor, _ = make_pre_post_processors(policy.config, pretrained_path=str(source))
@@ -199,7 +254,10 @@ def main() -> None:
     os.environ.setdefault("MUJOCO_GL", "egl")
     logging.basicConfig(level=logging.INFO, format="%(levelname)s %(message)s")
     register_third_party_plugins()
-    calibrate_main()
+    try:
+        calibrate_main()
+    except VIBConfigError as e:
+        sys.exit(f"lerobot-vib-calibrate: {e}")
 
 
 if __name__ == "__main__":

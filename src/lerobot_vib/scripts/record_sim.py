@@ -9,13 +9,14 @@
 
 import logging
 import os
+import sys
 from dataclasses import dataclass, field
 from pathlib import Path
 
 from lerobot.configs import parser
 from lerobot.utils.constants import HF_LEROBOT_HOME
 
-from ..sim.recorder import RecordingSettings, record_scripted_dataset
+from ..sim.recorder import SIDECAR, RecordingError, RecordingLog, RecordingSettings, record_scripted_dataset
 
 
 @dataclass
@@ -101,7 +102,22 @@ def main() -> None:
 
     datasets.disable_progress_bars()  # one progress bar per saved episode otherwise
     logging.basicConfig(level=logging.INFO, format="%(levelname)s %(message)s")
-    record_sim()
+    try:
+        record_sim()
+    except RecordingError as e:
+        sys.exit(f"lerobot-vib-record-sim: {e}")
+    except KeyboardInterrupt:
+        sys.exit(_interrupted_message())
+
+
+def _interrupted_message() -> str:
+    """One line: what is saved and the command that continues (the recorder rolled back the unfinished episode)."""
+    args = [a for a in sys.argv[1:] if not a.startswith(("--resume", "--overwrite"))]
+    root = next((a.split("=", 1)[1] for a in args if a.startswith("--root=")), None)
+    saved = ""
+    if root and (Path(root) / SIDECAR).is_file():
+        saved = f" {len(RecordingLog.load(Path(root)).episode_seeds)} episodes are saved in {root};"
+    return f"Interrupted:{saved} continue with: lerobot-vib-record-sim {' '.join(args)} --resume=true"
 
 
 if __name__ == "__main__":

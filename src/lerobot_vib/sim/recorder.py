@@ -12,9 +12,12 @@ every failed attempt, so a run can be resumed (`resume=True`) without re-recordi
 
 from __future__ import annotations
 
+import contextlib
 import json
 import logging
+import os
 import shutil
+import sys
 from collections.abc import Callable
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
@@ -40,6 +43,13 @@ MOTOR_NAMES = [
     for joint in ("waist", "shoulder", "elbow", "forearm_roll", "wrist_angle", "wrist_rotate", "gripper")
 ]
 SIDECAR = "meta/scripted_recording.json"
+# What LeRobot writes under a dataset root; nothing else there is ever deleted or rewritten by the recorder.
+DATASET_DIRS = ("data", "meta", "videos", "images")
+RESTORED_FILES = ("meta/info.json", "meta/stats.json")  # rewritten by every save: restored, not size-checked
+
+
+class RecordingError(ValueError):
+    """A refusal that names the problem; the command line prints it without a traceback."""
 
 
 @dataclass
@@ -56,10 +66,14 @@ class RecordingSettings:
 
 @dataclass
 class RecordingLog:
+    """The sidecar: seeds, and the dataset's state after the last saved episode (the commit point)."""
+
     settings: RecordingSettings
     episode_seeds: list[int] = field(default_factory=list)  # seed of saved episode i
     failed_seeds: list[int] = field(default_factory=list)
-    pending_seed: int | None = None  # being saved; counts as saved if the dataset has the episode
+    # After the last saved episode: size of every file LeRobot had written, and info.json / stats.json.
+    committed_files: dict[str, int] = field(default_factory=dict)
+    committed_meta: dict[str, dict] = field(default_factory=dict)
 
     @property
     def next_seed(self) -> int | None:
@@ -67,15 +81,90 @@ class RecordingLog:
         return max(attempted) + 1 if attempted else None
 
     def save(self, root: Path) -> None:
-        path = root / SIDECAR
-        tmp = path.with_suffix(".tmp")
-        tmp.write_text(json.dumps(asdict(self), indent=2))
-        tmp.replace(path)  # atomic: an interruption leaves the old or the new log, never half of one
+        _durable_write(root / SIDECAR, json.dumps(asdict(self), indent=2))
 
     @classmethod
     def load(cls, root: Path) -> RecordingLog:
         data = json.loads((root / SIDECAR).read_text())
+        data.pop("pending_seed", None)  # written by earlier versions
         return cls(settings=RecordingSettings(**data.pop("settings")), **data)
+
+
+def _durable_write(path: Path, text: str) -> None:
+    """Atomic and on disk: an interruption or power loss leaves the old or the new file, never half of one."""
+    tmp = path.with_suffix(path.suffix + ".tmp")
+    with tmp.open("w") as f:
+        f.write(text)
+        f.flush()
+        os.fsync(f.fileno())
+    tmp.replace(path)
+    _fsync_dir(path.parent)
+
+
+def _fsync_dir(path: Path) -> None:
+    fd = os.open(path, os.O_RDONLY)
+    try:
+        os.fsync(fd)
+    finally:
+        os.close(fd)
+
+
+def _dataset_files(root: Path) -> dict[str, int]:
+    """Relative path -> size of every file LeRobot wrote under `root` (the sidecar excluded)."""
+    files = {}
+    for top in DATASET_DIRS:
+        for path in (root / top).rglob("*") if (root / top).is_dir() else ():
+            rel = path.relative_to(root).as_posix()
+            if path.is_file() and not rel.startswith(SIDECAR):
+                files[rel] = path.stat().st_size
+    return files
+
+
+def _commit(root: Path, log: RecordingLog) -> None:
+    """Make the closed dataset files durable, then record them as the state to return to."""
+    _remove_empty_dirs(root)
+    files = _dataset_files(root)
+    for rel in files:
+        if rel in RESTORED_FILES or log.committed_files.get(rel) != files[rel]:
+            with (root / rel).open("rb") as f:
+                os.fsync(f.fileno())
+    for directory in {(root / rel).parent for rel in files}:
+        _fsync_dir(directory)
+    log.committed_files = {rel: size for rel, size in files.items() if rel not in RESTORED_FILES}
+    log.committed_meta = {rel: json.loads((root / rel).read_text()) for rel in RESTORED_FILES if (root / rel).exists()}
+    log.save(root)  # the commit point
+
+
+def _rollback(root: Path, log: RecordingLog) -> list[str]:
+    """Return the dataset to its state after the last saved episode: delete the files of an unfinished one,
+    restore info.json and stats.json. Refuses if a saved file changed. Returns the deleted paths."""
+    changed = [
+        rel
+        for rel, size in log.committed_files.items()
+        if not (root / rel).is_file() or (root / rel).stat().st_size != size
+    ]
+    if changed:
+        raise RecordingError(
+            f"Cannot repair {root}: files of saved episodes are missing or changed since they were saved "
+            f"({', '.join(changed[:5])}{' ...' if len(changed) > 5 else ''}). Record it again with `--overwrite=true`."
+        )
+    deleted = [rel for rel in _dataset_files(root) if rel not in log.committed_files and rel not in RESTORED_FILES]
+    for rel in deleted:
+        (root / rel).unlink()
+    for rel, content in log.committed_meta.items():
+        _durable_write(root / rel, json.dumps(content, indent=4))
+    _remove_empty_dirs(root)
+    return deleted
+
+
+def _remove_empty_dirs(root: Path) -> None:
+    """Empty folders that LeRobot's image staging or an unfinished episode left behind."""
+    for top in DATASET_DIRS:
+        for directory in sorted((root / top).rglob("*"), reverse=True) if (root / top).is_dir() else ():
+            if directory.is_dir() and not any(directory.iterdir()):
+                directory.rmdir()
+        if (root / top).is_dir() and not any((root / top).iterdir()):
+            (root / top).rmdir()
 
 
 def aloha_features(settings: RecordingSettings) -> dict:
@@ -131,8 +220,12 @@ def record_scripted_dataset(
 ) -> RecordingResult:
     """Record until the dataset holds `num_episodes` successful episodes (in total, when resuming).
 
+    Durability: every saved episode is written to files of its own, closed and synced to disk, before the
+    sidecar records it (the commit point); `on_episode_saved(n_saved)` is called after that. An interruption
+    (an exception here, or SIGKILL and power loss at the next `resume`) rolls the dataset back to the last
+    saved episode: only the unfinished one is lost.
+
     `max_attempts` bounds the seeds tried in this call (default: 3 * episodes still missing + 10).
-    `on_episode_saved(n_saved)` is called after each saved episode.
     """
     check_task(settings.task)
     check_cameras(settings.cameras)
@@ -141,32 +234,42 @@ def record_scripted_dataset(
     if overwrite and resume:
         raise ValueError("Choose one of `overwrite` (start over) and `resume` (add to the dataset).")
     root = Path(root)
-    exists = (root / "meta" / "info.json").exists()
-
-    if exists and resume:
-        dataset = LeRobotDataset.resume(repo_id, root=root)
-        log = _reconcile(root, dataset.meta.total_episodes, settings)
-    elif exists and not overwrite:
-        raise FileExistsError(
+    ours = (root / SIDECAR).is_file()
+    if root.exists() and not ours and any(root.iterdir()):
+        what = "a LeRobot dataset not recorded by this command" if (root / "meta/info.json").exists() else "not empty"
+        raise RecordingError(
+            f"{root} is {what}; this command only writes into an empty folder or a dataset it recorded "
+            "(`--overwrite` deletes only such datasets). Choose another `--root`."
+        )
+    foreign = sorted(p.name for p in root.iterdir() if p.name not in DATASET_DIRS) if ours else []
+    if foreign and (overwrite or not _saved_episodes(root)):
+        raise RecordingError(
+            f"{root} holds files that are not part of the dataset ({', '.join(foreign)}); move them elsewhere "
+            "before starting the dataset over. Nothing was deleted."
+        )
+    if ours and not (resume or overwrite):
+        raise RecordingError(
             f"A dataset already exists at {root}. Pass `--resume=true` to add episodes to it or "
             "`--overwrite=true` to delete it and start over."
         )
+
+    dataset = None
+    if ours and resume:
+        log = RecordingLog.load(root)
+        if log.settings != settings:
+            raise RecordingError(
+                f"Cannot resume {root}: it was recorded with {asdict(log.settings)}, this run asks for "
+                f"{asdict(settings)}."
+            )
+        deleted = _rollback(root, log)
+        if deleted:
+            logger.info("Dropped the unfinished episode of an interrupted run (%d files).", len(deleted))
+        if not log.episode_seeds:
+            _delete_dataset(root)
     else:
-        if root.exists():
-            if not overwrite and any(root.iterdir()):
-                raise FileExistsError(f"{root} exists and is not a dataset; pass `--overwrite=true` to replace it.")
-            shutil.rmtree(root)
-        dataset = LeRobotDataset.create(
-            repo_id=repo_id,
-            fps=FPS,
-            features=aloha_features(settings),
-            root=root,
-            robot_type="aloha",
-            use_videos=settings.use_videos,
-            metadata_buffer_size=1,  # flush episode metadata at once: an interruption loses no saved episode
-        )
+        if ours:
+            _delete_dataset(root)
         log = RecordingLog(settings=settings)
-        log.save(root)
 
     missing = num_episodes - len(log.episode_seeds)
     next_seed = log.next_seed if log.next_seed is not None else seed
@@ -192,25 +295,69 @@ def record_scripted_dataset(
             if replay_max_reward(settings.task, next_seed, episode.joint_actions) < SUCCESS_REWARD:
                 log.failed_seeds.append(next_seed)
             else:
+                if dataset is None:
+                    dataset = _open_for_writing(root, repo_id, settings, new=not log.episode_seeds)
                 _record_episode(dataset, env, settings, next_seed, episode.joint_actions)
-                log.pending_seed = next_seed
-                log.save(root)
                 dataset.save_episode()
+                dataset.finalize()  # closes LeRobot's parquet writers: the episode's files are complete
+                dataset = None  # the next episode reopens the dataset and so writes files of its own
                 log.episode_seeds.append(next_seed)
-                log.pending_seed = None
+                _commit(root, log)
+                # stderr is line-buffered: a line reporting an episode saved is out before anything can kill us
+                bar.write(f"saved episode {len(log.episode_seeds) - 1} (seed {next_seed})", file=sys.stderr)
                 bar.update(1)
                 if on_episode_saved is not None:
                     on_episode_saved(len(log.episode_seeds))
-            log.save(root)
+            if (root / SIDECAR).parent.is_dir():
+                log.save(root)
             next_seed += 1
             bar.set_postfix(success=f"{len(log.episode_seeds)}/{len(log.episode_seeds) + len(log.failed_seeds)}")
+    except BaseException:
+        # Whatever stopped the run, leave the dataset as it was after its last saved episode.
+        if dataset is not None:
+            with contextlib.suppress(Exception):
+                dataset.clear_episode_buffer()
+                dataset.finalize()
+        if (root / SIDECAR).is_file():
+            if log.episode_seeds:
+                _rollback(root, log)
+            else:
+                _delete_dataset(root)
+        raise
     finally:
         bar.close()
-        if dataset.has_pending_frames():
-            dataset.clear_episode_buffer()
-        dataset.finalize()
         env.close()
     return RecordingResult(root, len(log.episode_seeds), log.episode_seeds, log.failed_seeds)
+
+
+def _open_for_writing(root: Path, repo_id: str, settings: RecordingSettings, new: bool) -> LeRobotDataset:
+    if not new:
+        return LeRobotDataset.resume(repo_id, root=root)
+    if root.exists():
+        root.rmdir()  # empty (checked above); LeRobot creates the folder itself
+    dataset = LeRobotDataset.create(
+        repo_id=repo_id,
+        fps=FPS,
+        features=aloha_features(settings),
+        root=root,
+        robot_type="aloha",
+        use_videos=settings.use_videos,
+    )
+    RecordingLog(settings=settings).save(root)  # marks the folder as this command's from its first file on
+    return dataset
+
+
+def _saved_episodes(root: Path) -> int:
+    return len(RecordingLog.load(root).episode_seeds)
+
+
+def _delete_dataset(root: Path) -> None:
+    """Delete a dataset this command recorded: LeRobot's folders only, then `root` if nothing else is left."""
+    for top in DATASET_DIRS:
+        if (root / top).is_dir():
+            shutil.rmtree(root / top)
+    if root.is_dir() and not any(root.iterdir()):
+        root.rmdir()
 
 
 def _record_episode(
@@ -225,25 +372,3 @@ def _record_episode(
         frame["task"] = task_string
         dataset.add_frame(frame)
         obs, *_ = env.step(action)
-
-
-def _reconcile(root: Path, saved_episodes: int, settings: RecordingSettings) -> RecordingLog:
-    if not (root / SIDECAR).exists():
-        raise FileNotFoundError(
-            f"{root} has no {SIDECAR}: it was not recorded by this command and cannot be resumed by it."
-        )
-    log = RecordingLog.load(root)
-    if log.settings != settings:
-        raise ValueError(
-            f"Cannot resume {root}: it was recorded with {asdict(log.settings)}, this run asks for {asdict(settings)}."
-        )
-    if log.pending_seed is not None and saved_episodes == len(log.episode_seeds) + 1:
-        log.episode_seeds.append(log.pending_seed)  # interrupted right after LeRobot saved the episode
-    log.pending_seed = None
-    if saved_episodes != len(log.episode_seeds):
-        raise RuntimeError(
-            f"{root} holds {saved_episodes} episodes but its recording log lists {len(log.episode_seeds)}; "
-            "record it again with `--overwrite=true`."
-        )
-    log.save(root)
-    return log

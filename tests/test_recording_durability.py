@@ -1,0 +1,195 @@
+"""Recordings survive SIGKILL and Ctrl-C; `--overwrite` deletes only datasets this command wrote.
+
+Every kill below is a real SIGKILL of a real `lerobot-vib-record-sim` process, sent at a chosen point of
+LeRobot's save sequence: while frames are buffered, after the data parquet is written (its writer still
+open), after the episode metadata and info.json are written, and after the files are closed but before the
+recorder's commit. After each, every episode the process reported as saved must load, frame for frame, and
+resuming must finish the dataset with contiguous episode indices.
+"""
+
+from __future__ import annotations
+
+import os
+import re
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+import pytest
+from lerobot.datasets.lerobot_dataset import LeRobotDataset
+
+from helpers import BIN
+from lerobot_vib.sim.recorder import SIDECAR, RecordingError, RecordingSettings, record_scripted_dataset
+
+SETTINGS = RecordingSettings(
+    task="transfer_cube", image_height=48, image_width=64, cameras=["top"], shadows=False, use_videos=True
+)
+CLI_ARGS = ["--task=transfer_cube", "--image_height=48", "--image_width=64", "--shadows=false", "--repo_id=local/k"]
+
+# Runs the recorder's command line with one function patched to SIGKILL the process at its n-th call.
+KILLER = """
+import importlib, os, signal, sys
+module_name, attr, n, when = sys.argv.pop(1).split(":")
+owner_name, _, method = attr.rpartition(".")
+module = importlib.import_module(module_name)
+owner = getattr(module, owner_name) if owner_name else module
+original = getattr(owner, method)
+calls = 0
+def patched(*args, **kwargs):
+    global calls
+    calls += 1
+    if calls == int(n) and when == "before":
+        os.kill(os.getpid(), signal.SIGKILL)
+    out = original(*args, **kwargs)
+    if calls == int(n) and when == "after":
+        os.kill(os.getpid(), signal.SIGKILL)
+    return out
+setattr(owner, method, patched)
+from lerobot_vib.scripts.record_sim import main
+main()
+"""
+
+KILL_POINTS = {
+    "while recording frames": "lerobot.datasets.lerobot_dataset:LeRobotDataset.add_frame:600:before",
+    "after the data parquet": "lerobot.datasets.dataset_writer:DatasetWriter._save_episode_video:2:before",
+    "after info.json and episode metadata": (
+        "lerobot.datasets.dataset_metadata:LeRobotDatasetMetadata.save_episode:2:after"
+    ),
+    "after closing, before the commit": "lerobot_vib.sim.recorder:_commit:2:before",
+}
+
+
+def env() -> dict:
+    return {**os.environ, "MUJOCO_GL": "egl", "HF_HUB_OFFLINE": "1"}
+
+
+def record_killed(root: Path, kill_point: str, num_episodes: int, tmp_path: Path, resume: bool = False) -> list[int]:
+    """Run the recorder until the kill; return the episode indices it reported as saved."""
+    script = tmp_path / "killer.py"
+    script.write_text(KILLER)
+    args = [*CLI_ARGS, f"--num_episodes={num_episodes}", f"--root={root}"] + (["--resume=true"] if resume else [])
+    proc = subprocess.run(
+        [sys.executable, str(script), kill_point, *args], capture_output=True, text=True, env=env(), timeout=600
+    )
+    assert proc.returncode == -signal.SIGKILL, proc.stderr[-3000:]
+    return [int(i) for i in re.findall(r"saved episode (\d+)", proc.stderr)]
+
+
+def episode_arrays(root: Path) -> dict[int, dict[str, np.ndarray]]:
+    ds = LeRobotDataset("local/k", root=root)
+    data = ds.hf_dataset.with_format("numpy")
+    columns = {key: np.asarray(data[key]) for key in ("episode_index", "observation.state", "action", "frame_index")}
+    out = {}
+    for ep in np.unique(columns["episode_index"]):
+        rows = columns["episode_index"] == ep
+        out[int(ep)] = {
+            "state": columns["observation.state"][rows],
+            "action": columns["action"][rows],
+            "frame_index": columns["frame_index"][rows],
+            "image_0": ds[int(np.flatnonzero(rows)[0])]["observation.images.top"].numpy(),
+            "image_last": ds[int(np.flatnonzero(rows)[-1])]["observation.images.top"].numpy(),
+        }
+    return out
+
+
+def assert_same_episodes(before: dict, after: dict) -> None:
+    for ep, arrays in before.items():
+        for key, value in arrays.items():
+            np.testing.assert_array_equal(after[ep][key], value, err_msg=f"episode {ep} {key}")
+
+
+@pytest.mark.parametrize("point", list(KILL_POINTS))
+def test_sigkill_loses_no_saved_episode(point, tmp_path):
+    root = tmp_path / "ds"
+    saved = record_killed(root, KILL_POINTS[point], num_episodes=3, tmp_path=tmp_path)
+    assert saved == [0], f"the kill should come during episode 1, the process reported {saved}"
+
+    # Resuming with nothing left to record repairs the dataset: the saved episode loads, the unfinished is gone.
+    record_scripted_dataset(root, "local/k", SETTINGS, num_episodes=1, resume=True, progress=False)
+    repaired = episode_arrays(root)
+    assert sorted(repaired) == [0] and len(repaired[0]["state"]) == 400
+
+    record_scripted_dataset(root, "local/k", SETTINGS, num_episodes=2, resume=True, progress=False)
+    final = episode_arrays(root)
+    assert sorted(final) == [0, 1] and all(len(a["state"]) == 400 for a in final.values())
+    assert_same_episodes(repaired, final)
+    np.testing.assert_array_equal(final[1]["frame_index"], np.arange(400))
+
+
+def test_a_killed_resumed_recording_keeps_its_episodes(tmp_path):
+    """Killed, resumed, killed again during the resume, resumed: every reported episode, indices contiguous."""
+    root = tmp_path / "ds"
+    point = KILL_POINTS["after info.json and episode metadata"]
+    assert record_killed(root, point, num_episodes=4, tmp_path=tmp_path) == [0]
+    # The second process saves episode 1 (the first save_episode of its own), then dies in episode 2's.
+    assert record_killed(root, point, num_episodes=4, tmp_path=tmp_path, resume=True) == [1]
+    record_scripted_dataset(root, "local/k", SETTINGS, num_episodes=2, resume=True, progress=False)  # repair only
+    before = episode_arrays(root)
+    assert sorted(before) == [0, 1]
+    record_scripted_dataset(root, "local/k", SETTINGS, num_episodes=3, resume=True, progress=False)
+    after = episode_arrays(root)
+    assert sorted(after) == [0, 1, 2]
+    assert_same_episodes(before, after)
+    ds = LeRobotDataset("local/k", root=root)
+    assert ds.meta.total_episodes == 3 and ds.num_frames == 1200
+
+
+def test_ctrl_c_prints_the_resume_command_not_a_traceback(tmp_path):
+    root = tmp_path / "ds"
+    proc = subprocess.Popen(
+        [str(BIN / "lerobot-vib-record-sim"), *CLI_ARGS, "--num_episodes=3", f"--root={root}"],
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        text=True,
+        env=env(),
+    )
+    deadline = time.monotonic() + 300
+    while not (root / SIDECAR).is_file() or 'episode_seeds": [\n    0' not in (root / SIDECAR).read_text():
+        assert time.monotonic() < deadline and proc.poll() is None, "no episode was saved"
+        time.sleep(0.2)
+    time.sleep(1.0)  # into episode 1
+    proc.send_signal(signal.SIGINT)
+    _, stderr = proc.communicate(timeout=120)
+    assert proc.returncode != 0
+    assert "Traceback" not in stderr, stderr[-3000:]
+    last = stderr.strip().splitlines()[-1]
+    assert last.startswith("Interrupted: 1 episodes are saved in") and "--resume=true" in last, last
+    assert LeRobotDataset("local/k", root=root).num_episodes == 1
+
+
+def test_overwrite_refuses_a_folder_it_did_not_write(tmp_path):
+    root = tmp_path / "R"
+    (root / "sub").mkdir(parents=True)
+    (root / "notes.txt").write_text("x")
+    proc = subprocess.run(
+        [str(BIN / "lerobot-vib-record-sim"), *CLI_ARGS, "--num_episodes=1", f"--root={root}", "--overwrite=true"],
+        capture_output=True,
+        text=True,
+        env=env(),
+    )
+    assert proc.returncode != 0 and "Traceback" not in proc.stderr
+    assert "not empty" in proc.stderr and "Choose another `--root`" in proc.stderr
+    assert (root / "notes.txt").read_text() == "x" and (root / "sub").is_dir()
+
+
+def test_overwrite_deletes_only_the_dataset(tmp_path):
+    root = tmp_path / "R"
+    record_scripted_dataset(root, "local/k", SETTINGS, num_episodes=1, progress=False)
+    assert not (root / "images").exists(), "an empty staging folder was left in a video dataset"
+    (root / "notes.txt").write_text("x")
+    with pytest.raises(RecordingError, match=r"notes\.txt.*Nothing was deleted"):
+        record_scripted_dataset(root, "local/k", SETTINGS, num_episodes=1, overwrite=True, progress=False)
+    assert LeRobotDataset("local/k", root=root).num_episodes == 1
+
+    (root / "notes.txt").unlink()
+    record_scripted_dataset(root, "local/k", SETTINGS, num_episodes=1, overwrite=True, seed=5, progress=False)
+    assert LeRobotDataset("local/k", root=root).num_episodes == 1
+
+
+def test_overwrite_refuses_a_lerobot_dataset_of_another_origin(tmp_path, tiny_dataset_root):
+    with pytest.raises(RecordingError, match="not recorded by this command"):
+        record_scripted_dataset(tiny_dataset_root, "local/k", SETTINGS, num_episodes=1, overwrite=True, progress=False)
+    assert LeRobotDataset("local/tiny", root=tiny_dataset_root).num_episodes == 2
