@@ -193,3 +193,21 @@ def test_overwrite_refuses_a_lerobot_dataset_of_another_origin(tmp_path, tiny_da
     with pytest.raises(RecordingError, match="not recorded by this command"):
         record_scripted_dataset(tiny_dataset_root, "local/k", SETTINGS, num_episodes=1, overwrite=True, progress=False)
     assert LeRobotDataset("local/tiny", root=tiny_dataset_root).num_episodes == 2
+
+
+def test_a_dataset_from_before_the_commit_record_resumes_without_losing_files(tmp_path):
+    """Sidecars written by earlier versions have no commit record: the dataset is adopted, not rolled back."""
+    import json
+
+    root = tmp_path / "ds"
+    record_scripted_dataset(root, "local/k", SETTINGS, num_episodes=1, progress=False)
+    before = episode_arrays(root)
+    log = json.loads((root / SIDECAR).read_text())
+    for key in ("committed_files", "committed_meta"):
+        del log[key]
+    (root / SIDECAR).write_text(json.dumps({**log, "pending_seed": None}))
+
+    record_scripted_dataset(root, "local/k", SETTINGS, num_episodes=2, resume=True, progress=False)
+    after = episode_arrays(root)
+    assert sorted(after) == [0, 1]
+    assert_same_episodes(before, after)

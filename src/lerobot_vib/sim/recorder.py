@@ -23,7 +23,8 @@ from dataclasses import asdict, dataclass, field
 from pathlib import Path
 
 import numpy as np
-from lerobot.datasets.lerobot_dataset import LeRobotDataset
+import pyarrow.parquet as pq
+from lerobot.datasets.lerobot_dataset import LeRobotDataset, LeRobotDatasetMetadata
 from tqdm import tqdm
 
 from .aloha_env import FastAlohaEnv
@@ -133,6 +134,25 @@ def _commit(root: Path, log: RecordingLog) -> None:
     log.committed_files = {rel: size for rel, size in files.items() if rel not in RESTORED_FILES}
     log.committed_meta = {rel: json.loads((root / rel).read_text()) for rel in RESTORED_FILES if (root / rel).exists()}
     log.save(root)  # the commit point
+
+
+def _adopt_uncommitted(root: Path, log: RecordingLog) -> None:
+    """A dataset recorded before the commit record existed: take it as it is if it is complete, else refuse."""
+    problem = None
+    try:
+        total = LeRobotDatasetMetadata("local/check", root=root).total_episodes
+        for path in sorted((root / "data").rglob("*.parquet")):
+            pq.read_metadata(path)  # an unclosed parquet file has no footer
+        if total != len(log.episode_seeds):
+            problem = f"it holds {total} episodes, its log lists {len(log.episode_seeds)}"
+    except Exception as e:
+        problem = f"{type(e).__name__}: {e}"
+    if problem:
+        raise RecordingError(
+            f"Cannot resume {root}: it was recorded by an earlier version of this command without a record of its "
+            f"saved state, and is incomplete ({problem}). Record it again with `--overwrite=true`."
+        )
+    _commit(root, log)
 
 
 def _rollback(root: Path, log: RecordingLog) -> list[str]:
@@ -261,6 +281,8 @@ def record_scripted_dataset(
                 f"Cannot resume {root}: it was recorded with {asdict(log.settings)}, this run asks for "
                 f"{asdict(settings)}."
             )
+        if log.episode_seeds and not log.committed_files:
+            _adopt_uncommitted(root, log)
         deleted = _rollback(root, log)
         if deleted:
             logger.info("Dropped the unfinished episode of an interrupted run (%d files).", len(deleted))
