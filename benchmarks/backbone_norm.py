@@ -17,7 +17,9 @@ from __future__ import annotations
 
 import argparse
 import csv
+import itertools
 import json
+import math
 import platform
 import sys
 import time
@@ -237,18 +239,37 @@ def render(args, preset: dict, recording: dict, results: dict) -> str:
         f"(batch {preset['batch_size']}), {args.steps} steps, seed {args.seed}. Evaluation: LeRobot's eval loop, "
         f"`aloha_fast` at the same size, seeds from {args.eval_seed}.",
         "",
-        "| variant | params | train wall time | final L1 | final rate | success | max reward (of 4) |",
+        "| variant | params | s/step (median) | final L1 | final rate | success (95% Wilson) | max reward (of 4) |",
         "| --- | ---: | ---: | ---: | ---: | ---: | ---: |",
     ]
     for name, r in results.items():
+        curve = list(csv.DictReader((args.out / name / "curve.csv").open()))
+        windows = [float(b["wall_s"]) - float(a["wall_s"]) for a, b in itertools.pairwise(curve)]
+        per_step = [w / args.log_every for w in windows if w > 0]
+        k = round(r["pc_success"] * r["n"] / 100)
+        low, high = wilson_interval(k, r["n"])
         lines.append(
-            f"| {name} | {r['params'] / 1e6:.1f}M | {r['train_s'] / 60:.1f} min | {r['final_l1']:.4f} | "
-            f"{r['final_rate']:.2f} | {r['pc_success'] * r['n'] / 100:.0f}/{r['n']} ({r['pc_success']:.0f}%) | "
-            f"{r['avg_max_reward']:.2f} |"
+            f"| {name} | {r['params'] / 1e6:.1f}M | {np.median(per_step):.2f} | {r['final_l1']:.4f} | "
+            f"{r['final_rate']:.2f} | {k}/{r['n']} ({100 * low:.0f}-{100 * high:.0f}%) | {r['avg_max_reward']:.2f} |"
         )
-    lines += ["", "Final L1 and rate: means over the last logging window (training mode, normalized actions)."]
+    lines += [
+        "",
+        "Final L1 and rate: means over the last logging window (training mode, normalized actions; ACT's L1 is "
+        "its reconstruction term, without its KL). s/step: the median over logging windows, so that periods "
+        "when other work shared the CPU do not count; total wall time per variant is in `result.json`.",
+    ]
     lines += ["", f"![curves]({Path(args.output).stem}.png)" if args.output else ""]
     return "\n".join(lines) + "\n"
+
+
+def wilson_interval(successes: int, n: int, z: float = 1.959964) -> tuple[float, float]:
+    """95% Wilson score interval of a success rate."""
+    if n == 0:
+        return 0.0, 1.0
+    p = successes / n
+    center = (p + z * z / (2 * n)) / (1 + z * z / n)
+    half = z * math.sqrt(p * (1 - p) / n + z * z / (4 * n * n)) / (1 + z * z / n)
+    return max(center - half, 0.0), min(center + half, 1.0)
 
 
 def plot(args, results: dict) -> None:

@@ -80,11 +80,12 @@ def main() -> None:
         ]
     )
 
-    ckpt = train_dir / "checkpoints" / "last" / "pretrained_model"
+    trained = train_dir / "checkpoints" / "last" / "pretrained_model"
+    ckpt = trained.with_name("pretrained_model_calibrated")  # lerobot-vib-calibrate's default output
     run(
         [
             str(BIN / "lerobot-vib-calibrate"),
-            f"--policy.path={ckpt}",
+            f"--policy.path={trained}",
             f"--dataset.repo_id={REPO_ID}",
             f"--dataset.root={data}",
         ]

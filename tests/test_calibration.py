@@ -220,3 +220,60 @@ def test_calibrate_names_bad_arguments_before_any_work(args, message, tiny_check
     assert message.format(missing=missing) in proc.stderr, proc.stderr[-2000:]
     assert "Traceback" not in proc.stderr and "Loading weights" not in proc.stderr
     assert not (tmp_path / "out").exists()
+
+
+def _calibrate(ckpt, dataset_root, *extra) -> str:
+    return run(
+        [
+            str(BIN / "lerobot-vib-calibrate"),
+            f"--policy.path={ckpt}",
+            "--dataset.repo_id=local/tiny",
+            f"--dataset.root={dataset_root}",
+            *extra,
+        ]
+    )
+
+
+def test_calibrate_writes_a_new_checkpoint_by_default_with_both_configs_calibrated(
+    tiny_checkpoint, tiny_dataset_root, tmp_path
+):
+    import shutil
+
+    ckpt = tmp_path / "pretrained_model"
+    shutil.copytree(tiny_checkpoint, ckpt)
+    source_files = {p.name: p.read_bytes() for p in ckpt.iterdir() if p.is_file()}
+    _calibrate(ckpt, tiny_dataset_root)
+
+    calibrated = tmp_path / "pretrained_model_calibrated"
+    config = json.loads((calibrated / "config.json").read_text())["calibration"]
+    train_config = json.loads((calibrated / "train_config.json").read_text())["policy"]["calibration"]
+    assert config["rate_mean"] is not None and train_config == config  # what `lerobot-train --resume` reads
+    assert {p.name: p.read_bytes() for p in ckpt.iterdir() if p.is_file()} == source_files  # untouched
+
+    _calibrate(ckpt, tiny_dataset_root, "--in_place=true")
+    config = json.loads((ckpt / "config.json").read_text())["calibration"]
+    assert config["rate_mean"] is not None
+    assert json.loads((ckpt / "train_config.json").read_text())["policy"]["calibration"] == config
+
+
+def test_calibrate_never_writes_into_a_folder_it_did_not_make(tiny_checkpoint, tiny_dataset_root, tmp_path):
+    import subprocess
+
+    target = tmp_path / "mine"
+    target.mkdir()
+    (target / "notes.txt").write_text("x")
+    proc = subprocess.run(
+        [
+            str(BIN / "lerobot-vib-calibrate"),
+            f"--policy.path={tiny_checkpoint}",
+            "--dataset.repo_id=local/tiny",
+            f"--dataset.root={tiny_dataset_root}",
+            f"--output_dir={target}",
+        ],
+        capture_output=True,
+        text=True,
+        env={**os.environ, "HF_HUB_OFFLINE": "1"},
+        timeout=300,
+    )
+    assert proc.returncode != 0 and "is not a calibrated checkpoint" in proc.stderr, proc.stderr[-2000:]
+    assert sorted(p.name for p in target.iterdir()) == ["notes.txt"]

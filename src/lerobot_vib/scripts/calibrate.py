@@ -3,20 +3,22 @@
     lerobot-vib-calibrate --policy.path=outputs/train/vib/checkpoints/last/pretrained_model \
         --dataset.repo_id=local/aloha_sim_transfer_cube_scripted --dataset.root=data/transfer_cube \
         [--episodes='[0,1,...,39]'] [--conformal_alpha=0.05 --conformal_episodes='[40,...,49]'] \
-        [--output_dir=...]
+        [--output_dir=... | --in_place=true]
 
 R_bar (mean rate), its std and quantiles are computed in eval mode over `--episodes` (default: all) and
 stored in the checkpoint's config (`calibration`), so `from_pretrained`, `lerobot-eval` and a Hub push carry
 them. gamma is the paper's mean(u) + 2 std(u), or with `--conformal_alpha` the split-conformal threshold on
-held-out `--conformal_episodes` (see `lerobot_vib.calibration`). Without `--output_dir` the checkpoint is
-updated in place.
+held-out `--conformal_episodes` (see `lerobot_vib.calibration`). The calibrated checkpoint is written to
+`<checkpoint>_calibrated` (or `--output_dir`); `--in_place=true` updates the checkpoint itself, `config.json`
+and `train_config.json` alike.
 """
 
+import json
 import logging
 import os
 import shutil
 import sys
-from dataclasses import dataclass
+from dataclasses import asdict, dataclass
 from pathlib import Path
 
 import huggingface_hub
@@ -26,6 +28,7 @@ from lerobot.configs.policies import PreTrainedConfig
 from lerobot.datasets.lerobot_dataset import LeRobotDataset, LeRobotDatasetMetadata
 from lerobot.policies.factory import make_pre_post_processors
 from lerobot.utils.import_utils import register_third_party_plugins
+from tqdm import tqdm
 
 from ..calibration import (
     QUANTILE_LEVELS,
@@ -65,7 +68,10 @@ class CalibrateConfig:
     conformal_episodes: Held-out in-distribution episodes for the conformal threshold (not in `episodes`).
     batch_size: Frames per forward pass.
     num_workers: DataLoader workers.
-    output_dir: Where to write the calibrated checkpoint (default: in place, for a local checkpoint).
+    output_dir: Where to write the calibrated checkpoint (default: `<checkpoint>_calibrated` beside a local
+        checkpoint). An existing folder is only written if it is a calibrated checkpoint itself.
+    in_place: Write the calibration into the checkpoint itself (`config.json` and `train_config.json`, so that
+        `lerobot-train --resume=true` keeps it) instead of a new folder.
     """
 
     dataset: CalibrationDataset
@@ -76,6 +82,7 @@ class CalibrateConfig:
     batch_size: int = 32
     num_workers: int = 0
     output_dir: Path | None = None
+    in_place: bool = False
 
     def __post_init__(self):
         # Arguments first: nothing below may cost minutes before a typo is reported.
@@ -136,6 +143,43 @@ def check_episodes(total_episodes: int, **named: list[int] | None) -> None:
             )
 
 
+def _output_dir(source: Path, output_dir: Path | None, in_place: bool) -> Path:
+    """Where the calibrated checkpoint goes; never a folder this command did not write (or the source, if asked)."""
+    if in_place:
+        if output_dir is not None:
+            raise VIBConfigError("Choose one of `--in_place=true` and `--output_dir`.")
+        if not source.is_dir():
+            raise VIBConfigError(f"{source} is not a local checkpoint: `--in_place` needs one.")
+        return source
+    if output_dir is None:
+        if not source.is_dir():
+            raise VIBConfigError(f"{source} is not a local checkpoint: pass `--output_dir` for the calibrated copy.")
+        output_dir = source.with_name(source.name + "_calibrated")
+    output_dir = Path(output_dir)
+    if output_dir.exists() and any(output_dir.iterdir()):
+        config = output_dir / "config.json"
+        calibrated = config.is_file() and (json.loads(config.read_text()).get("calibration") or {}).get("rate_mean")
+        if not calibrated:
+            raise VIBConfigError(
+                f"{output_dir} exists and is not a calibrated checkpoint; choose another `--output_dir` "
+                "(or `--in_place=true` to calibrate the checkpoint itself)."
+            )
+    return output_dir
+
+
+def _update_train_config(checkpoint: Path, policy_config: PreTrainedConfig) -> None:
+    """Keep `train_config.json` (what `lerobot-train --resume=true` reads) consistent with `config.json`."""
+    path = checkpoint / "train_config.json"
+    if not path.is_file():
+        return
+    train_config = json.loads(path.read_text())
+    if isinstance(train_config.get("policy"), dict):
+        train_config["policy"]["calibration"] = asdict(policy_config.calibration)
+        tmp = path.with_suffix(".json.tmp")
+        tmp.write_text(json.dumps(train_config, indent=4))
+        tmp.replace(path)
+
+
 def _loader(repo_id: str, root, episodes, revision, video_backend, batch_size, num_workers, needed: list[str]):
     dataset = LeRobotDataset(repo_id, root=root, episodes=episodes, revision=revision, video_backend=video_backend)
     missing = [k for k in needed if k not in dataset.meta.features]
@@ -174,7 +218,8 @@ def calibrate(
         return policy._encode(obs)[1]
 
     common = dict(revision=revision, video_backend=video_backend, batch_size=batch_size, num_workers=num_workers)
-    stats = rate_statistics(encode_rate, _loader(repo_id, root, episodes, needed=needed, **common))
+    loader = _loader(repo_id, root, episodes, needed=needed, **common)
+    stats = rate_statistics(encode_rate, tqdm(loader, desc="rate statistics", unit="batch"))
     calibration = CalibrationConfig(
         dataset_repo_id=repo_id,
         episodes=sorted(set(stats.episode_index.tolist())),
@@ -186,7 +231,8 @@ def calibrate(
         gamma_method="mean_plus_2std",
     )
     if conformal_alpha is not None:
-        held_out = rate_statistics(encode_rate, _loader(repo_id, root, conformal_episodes, needed=needed, **common))
+        loader = _loader(repo_id, root, conformal_episodes, needed=needed, **common)
+        held_out = rate_statistics(encode_rate, tqdm(loader, desc="held-out episodes", unit="batch"))
         calibration.gamma = conformal_gamma(held_out.episode_max(scale=stats.mean), conformal_alpha)
         calibration.gamma_method = "conformal"
         calibration.conformal_alpha = conformal_alpha
@@ -209,11 +255,7 @@ def calibrate_main(cfg: CalibrateConfig) -> CalibrationConfig:
     meta = LeRobotDatasetMetadata(cfg.dataset.repo_id, root=cfg.dataset.root, revision=cfg.dataset.revision)
     check_episodes(meta.total_episodes, episodes=cfg.episodes, conformal_episodes=cfg.conformal_episodes)
     source = Path(cfg.policy.pretrained_path)
-    output_dir = cfg.output_dir
-    if output_dir is None:
-        if not source.is_dir():
-            raise VIBConfigError(f"{source} is not a local checkpoint: pass `--output_dir` for the calibrated copy.")
-        output_dir = source
+    output_dir = _output_dir(source, cfg.output_dir, cfg.in_place)
     policy = VIBPolicy.from_pretrained(source, config=cfg.policy)
     preprocessor, _ = make_pre_post_processors(policy.config, pretrained_path=str(source))
     calibration = calibrate(
@@ -238,6 +280,7 @@ def calibrate_main(cfg: CalibrateConfig) -> CalibrationConfig:
             _, postprocessor = make_pre_post_processors(policy.config, pretrained_path=str(source))
             postprocessor.save_pretrained(output_dir)
     policy.save_pretrained(output_dir)
+    _update_train_config(output_dir, policy.config)
     quantiles = ", ".join(f"q{k}={v:.4g}" for k, v in calibration.rate_quantiles.items())
     print(
         f"Calibrated {output_dir} on {calibration.n_frames} frames of {len(calibration.episodes)} episodes of "
