@@ -26,6 +26,7 @@ from pathlib import Path
 
 import numpy as np
 import torch
+from tqdm import tqdm
 
 os.environ.setdefault("MUJOCO_GL", "egl")
 
@@ -81,7 +82,7 @@ def rollout(args: argparse.Namespace) -> dict:
     obs, _ = env.reset(seed=args.seed)
     policy.reset()
     rows, frames, max_reward = [], {}, 0.0
-    for t in range(args.steps):
+    for t in tqdm(range(args.steps), desc="rollout", unit="step"):
         occluded = t in occluded_steps
         if occluded:
             obs = {**obs, "pixels": {cam: occlude(img) for cam, img in obs["pixels"].items()}}
