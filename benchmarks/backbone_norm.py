@@ -8,7 +8,7 @@ the identity); `act+<norm>` swaps its trunk's norm layers (`backbone.swap_norm_l
 like. Curves (training L1 and rate every `--log_every` steps) and results are saved as they come, and a
 stopped run resumes: finished variants are skipped, a variant in training continues from its last state.
 
-    python benchmarks/backbone_norm.py --dataset_root data/tc_120x160 --steps 3000 \
+    python benchmarks/backbone_norm.py --dataset_root data/tc_120x160 --steps 1500 \
         --variants vib+frozen_bn vib+batch_norm vib+group_norm act+frozen_bn act+group_norm \
         --out outputs/backbone_norm --output benchmarks/results/backbone_norm_cpu_2core.md
 """
@@ -248,9 +248,10 @@ def render(args, preset: dict, recording: dict, results: dict) -> str:
         per_step = [w / args.log_every for w in windows if w > 0]
         k = round(r["pc_success"] * r["n"] / 100)
         low, high = wilson_interval(k, r["n"])
+        rate = "-" if math.isnan(r["final_rate"]) else f"{r['final_rate']:.2f}"  # ACT has no rate
         lines.append(
             f"| {name} | {r['params'] / 1e6:.1f}M | {np.median(per_step):.2f} | {r['final_l1']:.4f} | "
-            f"{r['final_rate']:.2f} | {k}/{r['n']} ({100 * low:.0f}-{100 * high:.0f}%) | {r['avg_max_reward']:.2f} |"
+            f"{rate} | {k}/{r['n']} ({100 * low:.0f}-{100 * high:.0f}%) | {r['avg_max_reward']:.2f} |"
         )
     lines += [
         "",

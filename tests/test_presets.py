@@ -19,6 +19,7 @@ def test_cpu_preset_trains_through_config_path(tiny_dataset_root, tmp_path):
             f"--dataset.root={tiny_dataset_root}",
             "--steps=1",
             "--num_workers=0",
+            "--log_freq=1",  # the preset logs every 50 steps; one step must still show its loss
             f"--output_dir={out}",
         ]
     )
