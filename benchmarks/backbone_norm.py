@@ -7,6 +7,7 @@ shadow setting. ACT is LeRobot's, built with `pretrained_backbone_weights=None` 
 the identity); `act+<norm>` swaps its trunk's norm layers (`backbone.swap_norm_layers`) to compare like with
 like. Curves (training L1 and rate every `--log_every` steps) and results are saved as they come, and a
 stopped run resumes: finished variants are skipped, a variant in training continues from its last state.
+Each trained variant is also saved as a LeRobot checkpoint, `<out>/<variant>/pretrained_model`.
 
     python benchmarks/backbone_norm.py --dataset_root data/tc_120x160 --steps 1500 \
         --variants vib+frozen_bn vib+batch_norm vib+group_norm act+frozen_bn act+group_norm \
@@ -21,6 +22,7 @@ import itertools
 import json
 import math
 import platform
+import shutil
 import sys
 import time
 from pathlib import Path
@@ -145,6 +147,22 @@ def train_variant(name: str, preset: dict, args, meta: LeRobotDatasetMetadata, o
     return cfg, policy, pre, post
 
 
+def exportable(name: str) -> bool:
+    """ACT's config cannot say that its trunk's norms were swapped, so only such a variant is not saved."""
+    kind, norm = name.split("+")
+    return kind == "vib" or norm == "frozen_bn"
+
+
+def export(cfg, policy, pre, post, path: Path) -> None:
+    """A LeRobot checkpoint of the trained variant, for `lerobot-eval`, `lerobot-vib-calibrate`, ..."""
+    tmp = path.with_name(path.name + ".tmp")
+    shutil.rmtree(tmp, ignore_errors=True)
+    policy.save_pretrained(tmp)
+    pre.save_pretrained(tmp)
+    post.save_pretrained(tmp)
+    tmp.replace(path)
+
+
 def evaluate(cfg, policy, pre, post, env_cfg: AlohaFastEnv, args) -> dict:
     policy.eval()
     if isinstance(cfg, VIBConfig):
@@ -190,13 +208,7 @@ def main() -> None:
 
     recording = json.loads((args.dataset_root / SIDECAR).read_text())["settings"]
     meta = LeRobotDatasetMetadata("local/dataset", root=args.dataset_root)
-    env_cfg = AlohaFastEnv(
-        task={"transfer_cube": "AlohaTransferCube-v0", "insertion": "AlohaInsertion-v0"}[recording["task"]],
-        observation_height=recording["image_height"],
-        observation_width=recording["image_width"],
-        cameras=recording["cameras"],
-        shadows=recording["shadows"],
-    )
+    env_cfg = AlohaFastEnv(dataset_root=str(args.dataset_root))
     results = {}
     for name in args.variants:
         out = args.out / name
@@ -205,9 +217,13 @@ def main() -> None:
         if result_path.exists():
             results[name] = json.loads(result_path.read_text())
             print(f"{name}: done before, {results[name]['pc_success']:.0f}% success")
+            if exportable(name) and not (out / "pretrained_model").exists():
+                export(*train_variant(name, preset, args, meta, out), out / "pretrained_model")
             continue
         print(f"{name}: training {args.steps} steps", flush=True)
         cfg, policy, pre, post = train_variant(name, preset, args, meta, out)
+        if exportable(name):
+            export(cfg, policy, pre, post, out / "pretrained_model")
         t0 = time.perf_counter()
         result = evaluate(cfg, policy, pre, post, env_cfg, args)
         curve = list(csv.DictReader((out / "curve.csv").open()))

@@ -3,7 +3,8 @@
 1. record a small scripted ALOHA transfer-cube dataset (`lerobot-vib-record-sim`, 120x160, no Hub),
 2. train VIB on it (`lerobot-train --policy.type=vib`),
 3. calibrate its uncertainty on the training episodes (`lerobot-vib-calibrate`),
-4. roll the checkpoint out in the fast gym-aloha env (`lerobot-eval --env.type=aloha_fast`),
+4. roll the checkpoint out in the fast gym-aloha env with LeRobot's eval loop, recording u per episode
+   (`lerobot-vib-eval --env.type=aloha_fast --env.dataset_root=...`),
 5. trace u step by step in a rollout with an occlusion and the safety stop on
    (`examples/rollout_uncertainty.py`: trace.csv, summary.json, trace.png).
 
@@ -95,16 +96,13 @@ def main() -> None:
     shutil.rmtree(eval_dir, ignore_errors=True)
     run(
         [
-            str(BIN / "lerobot-eval"),
+            str(BIN / "lerobot-vib-eval"),  # lerobot-eval, and u and the stops of every episode
             f"--policy.path={ckpt}",
             f"--policy.device={args.device}",
             "--env.type=aloha_fast",
-            "--env.task=AlohaTransferCube-v0",
-            "--env.observation_height=120",
-            "--env.observation_width=160",
-            "--env.shadows=false",
-            "--eval.n_episodes=1",
-            "--eval.batch_size=1",
+            f"--env.dataset_root={data}",  # task, image size, cameras and shadows as recorded
+            "--eval.n_episodes=2",
+            "--eval.batch_size=2",
             f"--output_dir={eval_dir}",
         ]
     )
@@ -123,14 +121,19 @@ def main() -> None:
     )
 
     overall = json.loads((eval_dir / "eval_info.json").read_text())["overall"]
+    u_eval = json.loads((eval_dir / "uncertainty_info.json").read_text())["overall"]
     trace = json.loads((trace_dir / "summary.json").read_text())
     print(
         f"\nDataset: {data}\nCheckpoint (calibrated): {ckpt}\n"
-        f"Eval: success {overall['pc_success']:.0f}% over {overall['n_episodes']} episode(s), "
+        f"Eval: success {overall['pc_success']:.0f}% over {overall['n_episodes']} episodes, mean u "
+        f"{u_eval['u_mean']:.2f}, mean max u {u_eval['u_max_mean']:.2f} ({eval_dir}/uncertainty_info.json), "
         f"video {overall['video_paths'][0]}\n"
         f"Uncertainty trace: {trace_dir}/trace.png; mean u on clean steps {trace['mean_u_clean']:.2f}, on "
         f"occluded steps {trace['mean_u_occluded']:.2f}, gamma {trace['gamma']:.2f}, "
-        f"safety stops at steps {trace['stop_intervals']}"
+        f"safety stops at steps {trace['stop_intervals']}\n"
+        "A stop in the first steps is expected here: u is highest at the start of every episode (training "
+        "episodes too), and the paper's gamma = mean + 2 std of training frames lies below that peak. "
+        "A policy trained for minutes is also far from its data everywhere. See README, 'Uncertainty at run time'."
     )
 
 

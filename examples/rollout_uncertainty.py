@@ -150,7 +150,7 @@ def plot(rows: list[dict], summary: dict, frames: dict[int, np.ndarray], path: P
     ax.set_ylabel("normalized uncertainty u")
     outcome = "success" if summary["success"] else "failure"
     ax.set_title(f"{summary['task']}, seed {summary['seed']}: {outcome}")
-    ax.legend(loc="upper left", fontsize=8)
+    ax.legend(loc="upper left", bbox_to_anchor=(1.01, 1.0), fontsize=8)  # outside: u peaks at the first steps
     for i, k in enumerate(keys):
         sub = fig.add_subplot(grid[1, i])
         sub.imshow(frames[k])

@@ -1,30 +1,48 @@
-"""The presets in configs/policy/ load with the command the README gives for them."""
+"""Every preset in configs/policy/ trains with the command the README gives for it."""
 
 import json
 from pathlib import Path
 
+import pytest
+
 from helpers import BIN, run
+from lerobot_vib.configuration_vib import SCRATCH_BACKBONE_NORM
 
 PRESETS = Path(__file__).parents[1] / "configs" / "policy"
 
 
-def test_cpu_preset_trains_through_config_path(tiny_dataset_root, tmp_path):
-    """`lerobot-train --config_path=configs/policy/vib_cpu.json` plus the dataset flags, nothing else."""
+# What a user of each preset must add on this machine: the GPU preset's device and ImageNet weights.
+OFFLINE_CPU = {"vib.json": ["--policy.device=cpu", "--policy.pretrained_backbone_weights=null"], "vib_cpu.json": []}
+
+
+def test_every_preset_is_tested():
+    assert sorted(p.name for p in PRESETS.glob("*.json")) == sorted(OFFLINE_CPU)
+
+
+@pytest.mark.parametrize("name", sorted(OFFLINE_CPU))
+def test_preset_trains_through_config_path(name, tiny_dataset_root, tmp_path):
+    """`lerobot-train --config_path=configs/policy/<preset>` plus the dataset flags (and for the GPU preset,
+    the CPU and no ImageNet weights)."""
     out = tmp_path / "run"
     log = run(
         [
             str(BIN / "lerobot-train"),
-            f"--config_path={PRESETS / 'vib_cpu.json'}",
+            f"--config_path={PRESETS / name}",
             "--dataset.repo_id=local/tiny",
             f"--dataset.root={tiny_dataset_root}",
+            *OFFLINE_CPU[name],
             "--steps=1",
             "--num_workers=0",
-            "--log_freq=1",  # the preset logs every 50 steps; one step must still show its loss
+            "--log_freq=1",  # the presets log every 50 or 200 steps; one step must still show its loss
             f"--output_dir={out}",
         ]
     )
     assert "step:1" in log
-    preset = json.loads((PRESETS / "vib_cpu.json").read_text())["policy"]
+    preset = json.loads((PRESETS / name).read_text())["policy"]
     saved = json.loads((out / "checkpoints/last/pretrained_model/config.json").read_text())
-    for key in ("backbone_norm", "pretrained_backbone_weights", "chunk_size", "dim_model", "n_layers", "optimizer_lr"):
+    overridden = {"type", "device", "pretrained_backbone_weights", "backbone_norm", "input_features", "output_features"}
+    for key in preset.keys() - overridden:
         assert saved[key] == preset[key], key
+    # vib.json leaves the norm to follow the weights: without ImageNet weights the trunk trains from scratch.
+    assert saved["backbone_norm"] == (preset["backbone_norm"] or SCRATCH_BACKBONE_NORM)
+    assert saved["pretrained_backbone_weights"] is None

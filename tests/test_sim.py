@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import csv
 import json
 import subprocess
 from pathlib import Path
@@ -148,9 +149,10 @@ def test_lerobot_train_vib_runs_on_a_recorded_dataset(recorded, tmp_path):
     assert "step:2" in log
 
 
-def test_lerobot_eval_runs_on_the_fast_env(recorded, tmp_path):
-    """`--env.type=aloha_fast` is registered with LeRobot and feeds a policy trained on recorded data."""
-    out = tmp_path / "train"
+@pytest.fixture(scope="module")
+def recorded_checkpoint(recorded, tmp_path_factory) -> Path:
+    """A VIB checkpoint from one lerobot-train step on the recorded transfer-cube episode."""
+    out = tmp_path_factory.mktemp("train") / "run"
     run(
         [
             str(BIN / "lerobot-train"),
@@ -162,17 +164,19 @@ def test_lerobot_eval_runs_on_the_fast_env(recorded, tmp_path):
             f"--output_dir={out}",
         ]
     )
-    ckpt = out / "checkpoints" / "last" / "pretrained_model"
+    return out / "checkpoints" / "last" / "pretrained_model"
+
+
+def test_lerobot_eval_runs_on_the_fast_env_with_the_recordings_settings(recorded, recorded_checkpoint, tmp_path):
+    """`--env.type=aloha_fast` is registered with LeRobot; `--env.dataset_root` supplies task, size, cameras and
+    shadows, so the 48x64 policy is fed 48x64 images without a size flag."""
     run(
         [
             str(BIN / "lerobot-eval"),
-            f"--policy.path={ckpt}",
+            f"--policy.path={recorded_checkpoint}",
             "--policy.device=cpu",
             "--env.type=aloha_fast",
-            "--env.task=AlohaTransferCube-v0",
-            "--env.observation_height=48",
-            "--env.observation_width=64",
-            "--env.shadows=false",
+            f"--env.dataset_root={recorded['transfer_cube']}",
             "--env.episode_length=5",
             "--eval.n_episodes=1",
             "--eval.batch_size=1",
@@ -184,6 +188,62 @@ def test_lerobot_eval_runs_on_the_fast_env(recorded, tmp_path):
         ]
     )
     assert json.loads((tmp_path / "eval" / "eval_info.json").read_text())["overall"]["n_episodes"] == 1
+
+
+def test_env_dataset_root_refuses_a_contradicting_flag(recorded):
+    from lerobot_vib.configuration_vib import VIBConfigError
+    from lerobot_vib.sim.env_config import AlohaFastEnv
+
+    env = AlohaFastEnv(dataset_root=str(recorded["insertion"]))
+    assert (env.task, env.observation_height, env.observation_width, env.shadows) == (
+        "AlohaInsertion-v0",
+        48,
+        64,
+        False,
+    )
+    with pytest.raises(VIBConfigError, match="observation_width=160 contradicts"):
+        AlohaFastEnv(dataset_root=str(recorded["insertion"]), observation_width=160)
+    with pytest.raises(VIBConfigError, match="not a dataset recorded by lerobot-vib-record-sim"):
+        AlohaFastEnv(dataset_root=str(recorded["insertion"] / "meta"))
+
+
+def test_lerobot_vib_eval_reports_u_and_stops_per_episode(recorded, recorded_checkpoint, tmp_path):
+    """LeRobot's eval with two envs per batch; three episodes kept of four run, each cut at its own end.
+
+    gamma = 1e-6 makes every step a stop, so each episode's record must read: one stop, at step 0, held throughout.
+    """
+    out = tmp_path / "eval"
+    run(
+        [
+            str(BIN / "lerobot-vib-eval"),
+            f"--policy.path={recorded_checkpoint}",
+            "--policy.device=cpu",
+            "--policy.safety.enabled=true",
+            "--policy.safety.gamma=1e-6",
+            "--env.type=aloha_fast",
+            f"--env.dataset_root={recorded['transfer_cube']}",
+            "--env.episode_length=4",
+            "--eval.n_episodes=3",
+            "--eval.batch_size=2",
+            "--seed=7",
+            f"--output_dir={out}",
+        ]
+    )
+    eval_info = json.loads((out / "eval_info.json").read_text())
+    info = json.loads((out / "uncertainty_info.json").read_text())
+    episodes = info["per_episode"]
+    assert [e["seed"] for e in episodes] == [7, 8, 9]
+    assert [e["success"] for e in episodes] == eval_info["per_task"][0]["metrics"]["successes"]
+    assert info["safety_enabled"] and info["gamma"] == 1e-6
+    for e in episodes:
+        assert e["steps"] == 4 and e["stops"] == 1 and e["stop_steps"] == [0] and e["stopped_steps"] == 4
+        assert 0 < e["u_mean"] <= e["u_max"]
+    assert info["overall"]["episodes_with_stop"] == 3 and info["overall"]["stopped_step_fraction"] == 1.0
+    trace = list(csv.DictReader((out / "uncertainty_trace.csv").open()))
+    assert len(trace) == 12 and [int(r["episode"]) for r in trace[::4]] == [0, 1, 2]
+    for e in episodes:
+        u = [float(r["u"]) for r in trace if int(r["episode"]) == e["episode_ix"]]
+        assert np.isclose(np.mean(u), e["u_mean"], rtol=1e-4)
 
 
 def test_recorder_refuses_to_overwrite(recorded):

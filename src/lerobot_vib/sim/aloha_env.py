@@ -14,7 +14,7 @@ from gym_aloha.constants import JOINTS
 from gym_aloha.env import AlohaEnv
 from gymnasium import spaces
 
-from .tasks import check_cameras, make_joint_env
+from .tasks import TASK_STRINGS, check_cameras, make_joint_env
 
 
 class FastAlohaEnv(AlohaEnv):
@@ -50,6 +50,12 @@ class FastAlohaEnv(AlohaEnv):
                 "agent_pos": spaces.Box(-1000.0, 1000.0, shape=(len(JOINTS),), dtype=np.float64),
             }
         )
+
+    @property
+    def task_description(self) -> str:
+        """The recorded datasets' task string. LeRobot's eval loop asks every env for one; in a batch of
+        subprocess envs a missing attribute shuts the workers down."""
+        return TASK_STRINGS[self.task]
 
     def _make_env_task(self, task_name: str):
         return make_joint_env(task_name, self.cameras, self.observation_height, self.observation_width, self.shadows)

@@ -17,8 +17,10 @@ import json
 import logging
 import os
 import shutil
+import signal
 import sys
-from collections.abc import Callable
+import threading
+from collections.abc import Callable, Iterator
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
 
@@ -28,22 +30,18 @@ from lerobot.datasets.lerobot_dataset import LeRobotDataset, LeRobotDatasetMetad
 from tqdm import tqdm
 
 from .aloha_env import FastAlohaEnv
+from .env_config import SIDECAR
 from .scripted import SUCCESS_REWARD, script_episode
-from .tasks import check_cameras, check_task
+from .tasks import TASK_STRINGS, check_cameras, check_task
 
 logger = logging.getLogger(__name__)
 
 FPS = 50
-TASK_STRINGS = {  # the Hub datasets' task strings
-    "transfer_cube": "Pick up the cube with the right arm and transfer it to the left arm.",
-    "insertion": "Insert the peg into the socket.",
-}
 MOTOR_NAMES = [
     f"{side}_{joint}"
     for side in ("left", "right")
     for joint in ("waist", "shoulder", "elbow", "forearm_roll", "wrist_angle", "wrist_rotate", "gripper")
 ]
-SIDECAR = "meta/scripted_recording.json"
 # What LeRobot writes under a dataset root; nothing else there is ever deleted or rewritten by the recorder.
 DATASET_DIRS = ("data", "meta", "videos", "images")
 RESTORED_FILES = ("meta/info.json", "meta/stats.json")  # rewritten by every save: restored, not size-checked
@@ -226,6 +224,38 @@ class RecordingResult:
         return len(self.episode_seeds) / attempts if attempts else float("nan")
 
 
+class _DeferredInterrupt:
+    """Ctrl-C as a KeyboardInterrupt raised at the recorder's next check (every frame and every episode).
+
+    Raised wherever the signal lands, it can land in a finalizer (a closed dataset being collected), where
+    Python prints "Exception ignored" and goes on: the recording would finish as if nothing had been asked.
+    A second Ctrl-C interrupts at once.
+    """
+
+    def __init__(self) -> None:
+        self.requested = False
+
+    @contextlib.contextmanager
+    def installed(self) -> Iterator[_DeferredInterrupt]:
+        if threading.current_thread() is not threading.main_thread():
+            yield self  # signal handlers live in the main thread; elsewhere Ctrl-C is not ours to handle
+            return
+        previous = signal.signal(signal.SIGINT, self._handle)
+        try:
+            yield self
+        finally:
+            signal.signal(signal.SIGINT, previous)
+
+    def _handle(self, signum, frame) -> None:
+        if self.requested:
+            raise KeyboardInterrupt
+        self.requested = True
+
+    def check(self) -> None:
+        if self.requested:
+            raise KeyboardInterrupt
+
+
 def record_scripted_dataset(
     root: Path,
     repo_id: str,
@@ -305,35 +335,38 @@ def record_scripted_dataset(
     )
     bar = tqdm(total=num_episodes, initial=len(log.episode_seeds), desc=f"{settings.task}", disable=not progress)
     attempts = 0
+    interrupt = _DeferredInterrupt()
     try:
-        while len(log.episode_seeds) < num_episodes:
-            if attempts >= max_attempts:
-                raise RuntimeError(
-                    f"Only {len(log.episode_seeds)}/{num_episodes} successful episodes after {attempts} attempts "
-                    f"in this run (seeds up to {next_seed - 1}); raise `max_attempts` to keep trying."
-                )
-            attempts += 1
-            episode = script_episode(settings.task, next_seed)
-            if replay_max_reward(settings.task, next_seed, episode.joint_actions) < SUCCESS_REWARD:
-                log.failed_seeds.append(next_seed)
-            else:
-                if dataset is None:
-                    dataset = _open_for_writing(root, repo_id, settings, new=not log.episode_seeds)
-                _record_episode(dataset, env, settings, next_seed, episode.joint_actions)
-                dataset.save_episode()
-                dataset.finalize()  # closes LeRobot's parquet writers: the episode's files are complete
-                dataset = None  # the next episode reopens the dataset and so writes files of its own
-                log.episode_seeds.append(next_seed)
-                _commit(root, log)
-                # stderr is line-buffered: a line reporting an episode saved is out before anything can kill us
-                bar.write(f"saved episode {len(log.episode_seeds) - 1} (seed {next_seed})", file=sys.stderr)
-                bar.update(1)
-                if on_episode_saved is not None:
-                    on_episode_saved(len(log.episode_seeds))
-            if (root / SIDECAR).parent.is_dir():
-                log.save(root)
-            next_seed += 1
-            bar.set_postfix(success=f"{len(log.episode_seeds)}/{len(log.episode_seeds) + len(log.failed_seeds)}")
+        with interrupt.installed():
+            while len(log.episode_seeds) < num_episodes:
+                interrupt.check()
+                if attempts >= max_attempts:
+                    raise RuntimeError(
+                        f"Only {len(log.episode_seeds)}/{num_episodes} successful episodes after {attempts} attempts "
+                        f"in this run (seeds up to {next_seed - 1}); raise `max_attempts` to keep trying."
+                    )
+                attempts += 1
+                episode = script_episode(settings.task, next_seed)
+                if replay_max_reward(settings.task, next_seed, episode.joint_actions) < SUCCESS_REWARD:
+                    log.failed_seeds.append(next_seed)
+                else:
+                    if dataset is None:
+                        dataset = _open_for_writing(root, repo_id, settings, new=not log.episode_seeds)
+                    _record_episode(dataset, env, settings, next_seed, episode.joint_actions, interrupt.check)
+                    dataset.save_episode()
+                    dataset.finalize()  # closes LeRobot's parquet writers: the episode's files are complete
+                    dataset = None  # the next episode reopens the dataset and so writes files of its own
+                    log.episode_seeds.append(next_seed)
+                    _commit(root, log)
+                    # stderr is line-buffered: a line reporting an episode saved is out before anything can kill us
+                    bar.write(f"saved episode {len(log.episode_seeds) - 1} (seed {next_seed})", file=sys.stderr)
+                    bar.update(1)
+                    if on_episode_saved is not None:
+                        on_episode_saved(len(log.episode_seeds))
+                if (root / SIDECAR).parent.is_dir():
+                    log.save(root)
+                next_seed += 1
+                bar.set_postfix(success=f"{len(log.episode_seeds)}/{len(log.episode_seeds) + len(log.failed_seeds)}")
     except BaseException:
         # Whatever stopped the run, leave the dataset as it was after its last saved episode.
         if dataset is not None:
@@ -383,11 +416,17 @@ def _delete_dataset(root: Path) -> None:
 
 
 def _record_episode(
-    dataset: LeRobotDataset, env: FastAlohaEnv, settings: RecordingSettings, seed: int, actions: np.ndarray
+    dataset: LeRobotDataset,
+    env: FastAlohaEnv,
+    settings: RecordingSettings,
+    seed: int,
+    actions: np.ndarray,
+    check_interrupt: Callable[[], None],
 ) -> None:
     task_string = TASK_STRINGS[settings.task]
     obs, _ = env.reset(seed=seed)
     for action in actions:
+        check_interrupt()
         frame = {f"observation.images.{cam}": obs["pixels"][cam] for cam in settings.cameras}
         frame["observation.state"] = obs["agent_pos"].astype(np.float32)
         frame["action"] = action.astype(np.float32)

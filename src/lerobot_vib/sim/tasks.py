@@ -28,6 +28,10 @@ from gym_aloha.tasks.sim_end_effector import (
 from .env_config import CAMERAS
 
 TASKS = ("transfer_cube", "insertion")
+TASK_STRINGS = {  # the Hub datasets' task strings
+    "transfer_cube": "Pick up the cube with the right arm and transfer it to the left arm.",
+    "insertion": "Insert the peg into the socket.",
+}
 WELD_SOLIMP = (0.9, 0.95, 0.001, 0.5, 2.0)  # MuJoCo's default solimp
 
 

@@ -1,0 +1,241 @@
+"""`lerobot-vib-eval`: LeRobot's `lerobot-eval`, and the VIB policy's uncertainty in every episode.
+
+    lerobot-vib-eval --policy.path=<checkpoint> --env.type=aloha_fast --env.dataset_root=data/tc_120x160 \
+        --eval.n_episodes=50 --eval.batch_size=10 [--policy.safety.enabled=true] --output_dir=outputs/eval/vib
+
+The flags are lerobot-eval's and the evaluation is LeRobot's own (`eval_main`: same envs, seeds, success
+and `eval_info.json`). Beside `eval_info.json` it writes
+
+  uncertainty_info.json  per episode, in eval_info's order: seed, success, max reward, steps, mean and max u,
+                         the steps at which the safety stop fired and how many steps it held; then the same
+                         summed up over all episodes, and over successes and failures apart
+  uncertainty_trace.csv  one row per step of every episode: episode, seed, step, rate, u, stopped, just_stopped
+
+Every `select_action` of a VIB policy leaves the step's rate, u and stop decision per env in
+`policy.last_step`; this command keeps them while LeRobot's `rollout` runs a batch of envs, then cuts each
+env's record at the end of its episode with the rollout's own `done` flags, as LeRobot cuts its rewards.
+Steps that an env spends waiting for the rest of its batch are not counted.
+"""
+
+import csv
+import json
+import logging
+import math
+from collections.abc import Callable, Iterator
+from contextlib import contextmanager
+from pathlib import Path
+from typing import Any
+from unittest import mock
+
+import numpy as np
+from lerobot.configs import parser
+from lerobot.configs.eval import EvalPipelineConfig
+from lerobot.scripts import lerobot_eval
+from lerobot.utils.import_utils import register_third_party_plugins
+from lerobot.utils.utils import init_logging
+
+from ..configuration_vib import VIBConfigError
+
+logger = logging.getLogger(__name__)
+
+TRACE_FIELDS = ("episode", "seed", "step", "rate", "u", "stopped", "just_stopped")
+
+
+class UncertaintyCapture:
+    """Per-episode uncertainty records of every LeRobot `rollout` run inside `capture()`, in rollout order."""
+
+    def __init__(self) -> None:
+        self.episodes: list[dict[str, Any]] = []  # {"seed", "gamma", "safety", and per-step arrays}
+
+    @contextmanager
+    def capture(self) -> Iterator["UncertaintyCapture"]:
+        with mock.patch.object(lerobot_eval, "rollout", self._wrap(lerobot_eval.rollout)):
+            yield self
+
+    def _wrap(self, rollout: Callable[..., dict]) -> Callable[..., dict]:
+        def recording_rollout(*args: Any, **kwargs: Any) -> dict:
+            policy = kwargs["policy"]
+            steps: list[dict[str, np.ndarray]] = []
+            select_action = policy.select_action
+
+            def select_and_record(batch: dict, **select_kwargs: Any):
+                action = select_action(batch, **select_kwargs)
+                s = policy.last_step
+                steps.append(
+                    {
+                        "rate": s.rate.float().cpu().numpy(),
+                        "u": s.u.float().cpu().numpy(),
+                        "stopped": s.stopped.cpu().numpy(),
+                        "just_stopped": s.just_stopped.cpu().numpy(),
+                        "gamma": s.gamma,
+                        "safety": s.threshold_active,
+                    }
+                )
+                return action
+
+            policy.select_action = select_and_record  # an instance attribute, removed below
+            try:
+                data = rollout(*args, **kwargs)
+            finally:
+                del policy.select_action
+            self._add_batch(steps, data["done"].cpu().numpy(), kwargs.get("seeds"))
+            return data
+
+        return recording_rollout
+
+    def _add_batch(self, steps: list[dict], done: np.ndarray, seeds: list[int] | None) -> None:
+        if len(steps) != done.shape[1]:
+            raise RuntimeError(f"{len(steps)} policy steps for {done.shape[1]} env steps: the record is misaligned.")
+        for i in range(done.shape[0]):
+            ended = np.flatnonzero(done[i])
+            n = int(ended[0]) + 1 if len(ended) else done.shape[1]  # the done step itself belongs to the episode
+            self.episodes.append(
+                {
+                    "seed": None if seeds is None else int(seeds[i]),
+                    "gamma": steps[0]["gamma"] if steps else float("nan"),
+                    "safety": steps[0]["safety"] if steps else False,
+                    **{
+                        key: np.array([s[key][i] for s in steps[:n]])
+                        for key in ("rate", "u", "stopped", "just_stopped")
+                    },
+                }
+            )
+
+    def kept(self, n_episodes: int, batch_size: int) -> list[dict[str, Any]]:
+        """The episodes LeRobot keeps: per task, the first `n_episodes` of its ceil(n / batch) full batches."""
+        per_task = math.ceil(n_episodes / batch_size) * batch_size
+        return [
+            ep
+            for start in range(0, len(self.episodes), per_task)
+            for ep in self.episodes[start : start + per_task][:n_episodes]
+        ]
+
+
+def summarize(episodes: list[dict[str, Any]], eval_info: dict) -> dict:
+    """uncertainty_info.json: per-episode u and stops beside LeRobot's success, and their aggregates."""
+    successes = [s for task in eval_info["per_task"] for s in task["metrics"]["successes"]]
+    max_rewards = [r for task in eval_info["per_task"] for r in task["metrics"]["max_rewards"]]
+    if len(successes) != len(episodes):
+        raise RuntimeError(f"eval_info.json lists {len(successes)} episodes, the uncertainty record {len(episodes)}.")
+    per_episode = []
+    for i, (ep, success, max_reward) in enumerate(zip(episodes, successes, max_rewards, strict=True)):
+        u = ep["u"]
+        per_episode.append(
+            {
+                "episode_ix": i,
+                "seed": ep["seed"],
+                "success": bool(success),
+                "max_reward": float(max_reward),
+                "steps": len(u),
+                "u_mean": _mean(u),
+                "u_max": float(np.max(u)) if len(u) else None,
+                "stops": int(ep["just_stopped"].sum()),
+                "stop_steps": [int(t) for t in np.flatnonzero(ep["just_stopped"])],
+                "stopped_steps": int(ep["stopped"].sum()),
+            }
+        )
+
+    def aggregate(rows: list[dict]) -> dict:
+        return {
+            "n_episodes": len(rows),
+            "u_mean": _mean([r["u_mean"] for r in rows if r["u_mean"] is not None]),
+            "u_max_mean": _mean([r["u_max"] for r in rows if r["u_max"] is not None]),
+            "episodes_with_stop": sum(r["stops"] > 0 for r in rows),
+            "stops_per_episode": _mean([r["stops"] for r in rows]),
+            "stopped_step_fraction": _ratio(sum(r["stopped_steps"] for r in rows), sum(r["steps"] for r in rows)),
+        }
+
+    return {
+        "gamma": episodes[0]["gamma"] if episodes and math.isfinite(episodes[0]["gamma"]) else None,
+        "safety_enabled": bool(episodes[0]["safety"]) if episodes else None,
+        "overall": {
+            "pc_success": _ratio(100 * sum(r["success"] for r in per_episode), len(per_episode)),
+            **aggregate(per_episode),
+        },
+        "successes": aggregate([r for r in per_episode if r["success"]]),
+        "failures": aggregate([r for r in per_episode if not r["success"]]),
+        "per_episode": per_episode,
+    }
+
+
+def _mean(values) -> float | None:
+    """None, not NaN, for no values: NaN is not JSON."""
+    return float(np.mean(values)) if len(values) else None
+
+
+def _ratio(a: float, b: float) -> float | None:
+    return a / b if b else None
+
+
+def _fmt(value: float | None) -> str:
+    return "-" if value is None else f"{value:.3f}"
+
+
+def write_trace(episodes: list[dict[str, Any]], path: Path) -> None:
+    with path.open("w", newline="") as f:
+        writer = csv.writer(f)
+        writer.writerow(TRACE_FIELDS)
+        for i, ep in enumerate(episodes):
+            for t in range(len(ep["u"])):
+                writer.writerow(
+                    [
+                        i,
+                        ep["seed"],
+                        t,
+                        f"{ep['rate'][t]:.6g}",
+                        f"{ep['u'][t]:.6g}",
+                        int(ep["stopped"][t]),
+                        int(ep["just_stopped"][t]),
+                    ]
+                )
+
+
+def check(cfg: EvalPipelineConfig) -> None:
+    if cfg.policy is None or cfg.policy.type != "vib":
+        kind = "no policy" if cfg.policy is None else f"a {cfg.policy.type!r} policy"
+        raise VIBConfigError(
+            f"lerobot-vib-eval reports a VIB policy's uncertainty, but --policy.path gives {kind}; use lerobot-eval."
+        )
+    if cfg.env.max_parallel_tasks > 1:
+        raise VIBConfigError(
+            "lerobot-vib-eval matches episodes to eval_info.json in order, so tasks must run one after another: "
+            "set --env.max_parallel_tasks=1."
+        )
+
+
+@parser.wrap()
+def eval_with_uncertainty(cfg: EvalPipelineConfig) -> dict:
+    check(cfg)
+    with UncertaintyCapture().capture() as record:
+        lerobot_eval.eval_main(cfg)
+    out = Path(cfg.output_dir)
+    episodes = record.kept(cfg.eval.n_episodes, cfg.eval.batch_size)
+    info = summarize(episodes, json.loads((out / "eval_info.json").read_text()))
+    (out / "uncertainty_info.json").write_text(json.dumps(info, indent=2))
+    write_trace(episodes, out / "uncertainty_trace.csv")
+    o = info["overall"]
+    logger.info(
+        "Uncertainty over %d episodes: mean u %s, mean max u %s, gamma %s (stop %s); %d episodes with a stop. "
+        "Written to %s",
+        o["n_episodes"],
+        _fmt(o["u_mean"]),
+        _fmt(o["u_max_mean"]),
+        _fmt(info["gamma"]),
+        "on" if info["safety_enabled"] else "off",
+        o["episodes_with_stop"],
+        out / "uncertainty_info.json",
+    )
+    return info
+
+
+def main() -> None:
+    init_logging()
+    register_third_party_plugins()
+    try:
+        eval_with_uncertainty()
+    except VIBConfigError as e:
+        raise SystemExit(f"lerobot-vib-eval: {e}") from None
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,53 @@
+"""lerobot-vib-eval's bookkeeping: each env's record ends where LeRobot ends its episode."""
+
+import numpy as np
+import pytest
+
+from lerobot_vib.scripts.eval_uncertainty import UncertaintyCapture, summarize
+
+
+def step(u: list[float], stopped: list[bool], just_stopped: list[bool]) -> dict:
+    return {
+        "rate": np.array(u) * 10,
+        "u": np.array(u),
+        "stopped": np.array(stopped),
+        "just_stopped": np.array(just_stopped),
+        "gamma": 2.0,
+        "safety": True,
+    }
+
+
+def test_an_env_that_finishes_early_is_not_counted_while_it_waits():
+    capture = UncertaintyCapture()
+    steps = [
+        step([1.0, 1.0], [False, False], [False, False]),
+        step([3.0, 3.0], [True, True], [True, True]),  # env 0 ends here (done), env 1 stops
+        step([9.0, 1.0], [True, False], [False, False]),  # env 0 waits for env 1: not its episode
+    ]
+    done = np.array([[False, True, True], [False, False, False]])
+    capture._add_batch(steps, done, seeds=[5, 6])
+    eval_info = {"per_task": [{"metrics": {"successes": [True, False], "max_rewards": [4.0, 1.0]}}]}
+    info = summarize(capture.episodes, eval_info)
+    first, second = info["per_episode"]
+    assert first["steps"] == 2 and first["u_max"] == 3.0 and first["u_mean"] == 2.0
+    assert first["stop_steps"] == [1] and first["stopped_steps"] == 1
+    assert second["steps"] == 3 and second["u_mean"] == pytest.approx(5 / 3) and second["stopped_steps"] == 1
+    assert (first["seed"], second["seed"]) == (5, 6)
+    assert info["successes"]["n_episodes"] == 1 and info["failures"]["u_max_mean"] == 3.0
+    assert info["overall"]["pc_success"] == 50.0 and info["overall"]["stopped_step_fraction"] == 2 / 5
+
+
+def test_only_the_episodes_lerobot_keeps_are_reported():
+    """n_episodes=3 in batches of 2 runs 4 episodes per task; LeRobot keeps the first 3 of each task."""
+    capture = UncertaintyCapture()
+    capture.episodes = [{"seed": s} for s in (0, 1, 2, 3, 0, 1, 2, 3)]  # two tasks
+    assert [e["seed"] for e in capture.kept(n_episodes=3, batch_size=2)] == [0, 1, 2, 0, 1, 2]
+
+
+def test_a_record_that_does_not_match_eval_info_is_refused():
+    capture = UncertaintyCapture()
+    with pytest.raises(RuntimeError, match="misaligned"):
+        capture._add_batch([step([1.0], [False], [False])], np.zeros((1, 2), dtype=bool), seeds=None)
+    capture._add_batch([step([1.0], [False], [False])], np.ones((1, 1), dtype=bool), seeds=None)
+    with pytest.raises(RuntimeError, match="lists 2 episodes"):
+        summarize(capture.episodes, {"per_task": [{"metrics": {"successes": [1, 0], "max_rewards": [4, 0]}}]})
