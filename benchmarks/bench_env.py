@@ -1,7 +1,8 @@
-"""Steps per second of gym-aloha's env against `FastAlohaEnv`, measured in one run on one machine.
+"""Steps per second of gym-aloha's env against `FastAlohaEnv` and the simulated arm, in one run on one machine.
 
-Each env replays the same scripted transfer-cube joint actions from the same seed. gym-aloha renders three
-480x640 cameras per step (returning only `top`); FastAlohaEnv renders only what it returns.
+Each ALOHA env replays the same scripted transfer-cube joint actions from the same seed. gym-aloha renders
+three 480x640 cameras per step (returning only `top`); FastAlohaEnv renders only what it returns. The arm
+(`ArmGraspEnv`, `--env.type=vib_arm`) replays its own scripted grasp; the ratio is to gym-aloha's default.
 
     python benchmarks/bench_env.py --steps 100 --output benchmarks/results/env_cpu_2core.md
 """
@@ -21,7 +22,9 @@ import gymnasium as gym
 from report import cpu_name, emit
 
 from lerobot_vib.sim.aloha_env import FastAlohaEnv
+from lerobot_vib.sim.arm_env import ArmGraspEnv
 from lerobot_vib.sim.scripted import script_episode
+from lerobot_vib.sim.sim_tasks import get_task
 
 VARIANTS = [
     ("gym-aloha (3 cameras rendered, top returned)", "480x640", None),
@@ -34,15 +37,22 @@ VARIANTS = [
     ),
     ("FastAlohaEnv physics only (cameras=[])", "-", dict(cameras=[])),
 ]
+ARM_VARIANTS = [
+    ("ArmGraspEnv scene (default)", "96x128", dict(cameras=["scene"])),
+    ("ArmGraspEnv scene + wrist", "96x128", dict(cameras=["scene", "wrist"])),
+    ("ArmGraspEnv scene", "480x640", dict(cameras=["scene"], observation_height=480, observation_width=640)),
+    ("ArmGraspEnv physics only (cameras=[])", "-", dict(cameras=[])),
+]
 
 
-def steps_per_second(env: gym.Env, actions, seed: int) -> float:
+def steps_per_second(env: gym.Env, actions, seed: int, limit: int | None = None) -> float:
     env.reset(seed=seed)
     env.step(actions[0])  # warm-up: first render creates the GL context
+    steps = actions[1 : 1 + limit] if limit else actions[1:]
     t0 = time.perf_counter()
-    for action in actions[1:]:
+    for action in steps:
         env.step(action)
-    return (len(actions) - 1) / (time.perf_counter() - t0)
+    return len(steps) / (time.perf_counter() - t0)
 
 
 def main() -> None:
@@ -62,11 +72,20 @@ def main() -> None:
         sps = steps_per_second(env, actions, args.seed)
         rows.append((name, size, sps))
         print(f"{name} {size}: {sps:.1f} steps/s", file=sys.stderr)
+    arm_actions = get_task("grasp_block").scripted_actions(args.seed)
+    for name, size, kwargs in ARM_VARIANTS:
+        env = ArmGraspEnv(**kwargs)
+        # the grasp ends the episode at its success; replay from the start as many times as needed
+        reps = -(-args.steps // len(arm_actions))
+        sps = steps_per_second(env, list(arm_actions) * reps, args.seed, limit=args.steps)
+        env.close()
+        rows.append((name, size, sps))
+        print(f"{name} {size}: {sps:.1f} steps/s", file=sys.stderr)
 
     base = rows[0][2]
     lines = [
         f"Machine: {cpu_name()}; MUJOCO_GL={os.environ['MUJOCO_GL']}; "
-        f"{args.steps} steps of scripted transfer-cube actions, seed {args.seed}.",
+        f"{args.steps} steps of scripted actions (transfer-cube for ALOHA, the grasp for the arm), seed {args.seed}.",
         f"Command: python benchmarks/bench_env.py {' '.join(sys.argv[1:])}",
         "",
         "| env | image | steps/s | vs gym-aloha |",

@@ -14,8 +14,8 @@ from pathlib import Path
 
 from report import emit
 
-from lerobot_vib.sim.recorder import replay_max_reward
 from lerobot_vib.sim.scripted import script_episode
+from lerobot_vib.sim.sim_tasks import replay_max_reward
 
 
 def main() -> None:

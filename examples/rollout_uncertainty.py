@@ -1,4 +1,5 @@
-"""Roll a VIB checkpoint out in the ALOHA sim and trace its uncertainty step by step (paper Fig. 3).
+"""Roll a VIB checkpoint out in simulation (ALOHA or the 6-DoF arm) and trace its uncertainty step by step
+(paper Fig. 3).
 
 Writes, under --out:
   trace.csv    one row per step: step, rate, u, gamma, stopped, occluded, reward
@@ -6,11 +7,14 @@ Writes, under --out:
   trace.png    u over time with the threshold gamma, stop intervals and occlusion shaded, and key frames
                (needs matplotlib: pip install 'lerobot_policy_vib[examples]')
 
-An occlusion (a grey block over the middle of every camera image) can be placed on a range of steps, as in
-the paper's Fig. 3c, and the safety stop switched on for the run:
+An occlusion can be placed on a range of steps, as in the paper's Fig. 3c, and the safety stop switched on
+for the run. On ALOHA the occlusion is a grey block over the middle of every camera image; on the arm
+(`--task=grasp_block`) it is a board that enters the scene between the camera and the workspace:
 
     python examples/rollout_uncertainty.py --policy_path=outputs/demo/train/checkpoints/last/pretrained_model \
         --occlude=150:230 --safety --out=outputs/uncertainty
+    python examples/rollout_uncertainty.py --task=grasp_block \
+        --policy_path=outputs/arm/checkpoints/last/pretrained_model --occlude=30:60 --safety --out=outputs/arm_occlusion
 
 The loop is a plain gym loop around `policy.select_action`: the safety stop and `policy.last_step` need
 nothing from lerobot-eval.
@@ -35,8 +39,11 @@ from lerobot.policies.factory import make_pre_post_processors
 
 from lerobot_vib.modeling_vib import VIBPolicy
 from lerobot_vib.sim.aloha_env import FastAlohaEnv
+from lerobot_vib.sim.arm_env import EPISODE_LENGTH as ARM_EPISODE_LENGTH
+from lerobot_vib.sim.arm_env import ArmGraspEnv
+from lerobot_vib.sim.perturbations import PerturbationConfig
 
-TASKS = {"transfer_cube": "transfer_cube", "insertion": "insertion"}
+TASKS = ("transfer_cube", "insertion", "grasp_block")
 
 
 def occlude(image: np.ndarray, fraction: float = 0.4) -> np.ndarray:
@@ -74,28 +81,45 @@ def rollout(args: argparse.Namespace) -> dict:
 
     cameras = [key.removeprefix("observation.images.") for key in policy.config.image_features]
     _, height, width = next(iter(policy.config.image_features.values())).shape
-    env = FastAlohaEnv(
-        args.task, cameras=cameras, observation_height=height, observation_width=width, shadows=args.shadows
-    )
     occluded_steps = set(range(*args.occlude)) if args.occlude else set()
+    arm = args.task == "grasp_block"
+    shadows = arm if args.shadows is None else args.shadows  # the recorders' defaults
+    if arm:  # the occluder is a body in the scene, rendered by MuJoCo
+        occlusion = {}
+        if args.occlude:
+            occlusion = dict(occlusion=True, occlusion_start=args.occlude[0], occlusion_duration=len(occluded_steps))
+        env = ArmGraspEnv(
+            observation_height=height, observation_width=width, cameras=cameras, shadows=shadows,
+            perturbation=PerturbationConfig(**occlusion),
+        )  # fmt: skip
+    else:
+        env = FastAlohaEnv(
+            args.task, cameras=cameras, observation_height=height, observation_width=width, shadows=shadows
+        )
+    steps = args.steps or (ARM_EPISODE_LENGTH if arm else 400)
 
     obs, _ = env.reset(seed=args.seed)
     policy.reset()
-    rows, frames, max_reward = [], {}, 0.0
-    for t in tqdm(range(args.steps), desc="rollout", unit="step"):
+    rows, frames, max_reward, success = [], {}, 0.0, False
+    for t in tqdm(range(steps), desc="rollout", unit="step"):
         occluded = t in occluded_steps
-        if occluded:
+        if occluded and not arm:
             obs = {**obs, "pixels": {cam: occlude(img) for cam, img in obs["pixels"].items()}}
         batch = preprocessor(preprocess_observation(obs))
         with torch.inference_mode():
             action = postprocessor(policy.select_action(batch))
         step = policy.last_step.row(0)
-        key_frame = step["just_stopped"] or step["resumed"] or t in (0, args.steps - 1, min(occluded_steps, default=-1))
+        key_frame = step["just_stopped"] or step["resumed"] or t in (0, steps - 1, min(occluded_steps, default=-1))
         if key_frame and len(frames) < 8:
             frames[t] = obs["pixels"][cameras[0]]
-        obs, reward, _, _, _ = env.step(action[0].numpy())
+        obs, reward, terminated, _, info = env.step(action[0].numpy())
         max_reward = max(max_reward, float(reward))
+        success = success or bool(info.get("is_success", False))
         rows.append({"step": t, **step, "occluded": occluded, "reward": float(reward)})
+        if terminated:  # as lerobot-eval: the episode ends at success
+            frames.setdefault(t, obs["pixels"][cameras[0]])
+            break
+    env.close()
 
     u = np.array([r["u"] for r in rows])
     occl = np.array([r["occluded"] for r in rows])
@@ -103,11 +127,11 @@ def rollout(args: argparse.Namespace) -> dict:
         "policy": str(args.policy_path),
         "task": args.task,
         "seed": args.seed,
-        "steps": args.steps,
+        "steps": len(rows),
         "occluded_steps": [min(occluded_steps), max(occluded_steps)] if occluded_steps else None,
         "safety_enabled": policy.config.safety.enabled,
         "gamma": rows[0]["gamma"],
-        "success": max_reward >= 4,
+        "success": success,
         "max_reward": max_reward,
         "stop_intervals": stop_intervals([r["stopped"] for r in rows]),
         "mean_u_clean": float(u[~occl].mean()) if (~occl).any() else None,
@@ -164,9 +188,9 @@ def plot(rows: list[dict], summary: dict, frames: dict[int, np.ndarray], path: P
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--policy_path", type=Path, required=True)
-    parser.add_argument("--task", choices=sorted(TASKS), default="transfer_cube")
+    parser.add_argument("--task", choices=TASKS, default="transfer_cube")
     parser.add_argument("--seed", type=int, default=0)
-    parser.add_argument("--steps", type=int, default=400)
+    parser.add_argument("--steps", type=int, default=None, help="default: the task's episode length")
     parser.add_argument(
         "--occlude",
         type=lambda s: tuple(int(x) for x in s.split(":")),
@@ -178,8 +202,9 @@ def main() -> None:
     parser.add_argument(
         "--shadows",
         action=argparse.BooleanOptionalAction,
-        default=False,
-        help="render shadows (use the setting the training data was recorded with)",
+        default=None,
+        help="render shadows (use the setting the training data was recorded with; default: the recorder's, "
+        "off for ALOHA, on for the arm)",
     )
     parser.add_argument("--device", default="cpu")
     parser.add_argument("--out", type=Path, default=Path("outputs/uncertainty"))

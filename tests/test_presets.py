@@ -11,8 +11,16 @@ from lerobot_vib.configuration_vib import SCRATCH_BACKBONE_NORM
 PRESETS = Path(__file__).parents[1] / "configs" / "policy"
 
 
-# What a user of each preset must add on this machine: the GPU preset's device and ImageNet weights.
-OFFLINE_CPU = {"vib.json": ["--policy.device=cpu", "--policy.pretrained_backbone_weights=null"], "vib_cpu.json": []}
+# What a user of each preset must add on this machine: the GPU presets' device and ImageNet weights.
+GPU_ON_CPU = ["--policy.device=cpu", "--policy.pretrained_backbone_weights=null"]
+OFFLINE_CPU = {
+    "vib.json": GPU_ON_CPU,
+    "vib_cpu.json": [],
+    "vib_aloha_transfer_cube.json": GPU_ON_CPU,
+    "vib_aloha_insertion.json": GPU_ON_CPU,
+    "vib_arm_sim.json": [],
+    "vib_real_arm.json": GPU_ON_CPU,
+}
 
 
 def test_every_preset_is_tested():

@@ -14,14 +14,10 @@ from lerobot.datasets.lerobot_dataset import LeRobotDataset
 
 from helpers import BIN, TRAIN_ARGS, run
 from lerobot_vib.sim.aloha_env import FastAlohaEnv
-from lerobot_vib.sim.recorder import (
-    SIDECAR,
-    TASK_STRINGS,
-    RecordingSettings,
-    record_scripted_dataset,
-    replay_max_reward,
-)
+from lerobot_vib.sim.recorder import SIDECAR, RecordingSettings, record_scripted_dataset
 from lerobot_vib.sim.scripted import object_pose, script_episode
+from lerobot_vib.sim.sim_tasks import replay_max_reward
+from lerobot_vib.sim.tasks import TASK_STRINGS
 
 SMALL = dict(image_height=48, image_width=64, cameras=["top"], shadows=False, use_videos=True)
 

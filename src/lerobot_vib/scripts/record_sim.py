@@ -1,8 +1,9 @@
-"""`lerobot-vib-record-sim`: record scripted ALOHA demonstrations as a LeRobotDataset.
+"""`lerobot-vib-record-sim`: record scripted demonstrations (ALOHA, or the simulated arm) as a LeRobotDataset.
 
     lerobot-vib-record-sim --task=transfer_cube --num_episodes=50 --root=data/aloha_transfer_cube
     lerobot-vib-record-sim --task=insertion --num_episodes=50 --image_height=120 --image_width=160 \
         --root=data/aloha_insertion_120x160
+    lerobot-vib-record-sim --task=grasp_block --root=data/arm_grasp_block   # 96x128, scene camera
     # add episodes to an interrupted or smaller recording:
     lerobot-vib-record-sim --task=insertion --num_episodes=100 --root=data/aloha_insertion_120x160 --resume=true
 """
@@ -10,24 +11,27 @@
 import logging
 import os
 import sys
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from pathlib import Path
 
 from lerobot.configs import parser
 from lerobot.utils.constants import HF_LEROBOT_HOME
 
 from ..sim.recorder import SIDECAR, RecordingError, RecordingLog, RecordingSettings, record_scripted_dataset
+from ..sim.sim_tasks import get_task
 
 
 @dataclass
 class RecordSimConfig:
     """Args:
-    task: transfer_cube or insertion.
+    task: transfer_cube or insertion (ALOHA), or grasp_block (the simulated 6-DoF arm).
     num_episodes: Successful episodes the dataset should hold (in total, when resuming).
-    repo_id: Dataset id written into the metadata (default local/aloha_sim_<task>_scripted).
+    repo_id: Dataset id written into the metadata (default local/aloha_sim_<task>_scripted for ALOHA,
+        local/vib_arm_grasp_block_scripted for the arm).
     root: Where to write the dataset (default $HF_LEROBOT_HOME/<repo_id>).
-    image_height, image_width: Camera resolution (gym-aloha's is 480x640).
-    cameras: MuJoCo cameras to record, each as observation.images.<camera>.
+    image_height, image_width: Camera resolution (default: gym-aloha's 480x640 for ALOHA, 96x128 for the arm).
+    cameras: MuJoCo cameras to record, each as observation.images.<camera> (default: top for ALOHA, scene for
+        the arm, which also has wrist).
     shadows: Render shadows as gym-aloha does; false is about 3x faster on a CPU but the images differ.
     use_videos: Store cameras as MP4 videos (as the Hub datasets) rather than PNG frames.
     seed: First seed; episode seeds are consecutive, failed ones skipped.
@@ -41,9 +45,9 @@ class RecordSimConfig:
     num_episodes: int = 50
     repo_id: str | None = None
     root: Path | None = None
-    image_height: int = 480
-    image_width: int = 640
-    cameras: list[str] = field(default_factory=lambda: ["top"])
+    image_height: int | None = None
+    image_width: int | None = None
+    cameras: list[str] | None = None
     shadows: bool = True
     use_videos: bool = True
     seed: int = 0
@@ -53,8 +57,15 @@ class RecordSimConfig:
     push_to_hub: bool = False
 
     def __post_init__(self):
+        task = get_task(self.task)
         if self.repo_id is None:
-            self.repo_id = f"local/aloha_sim_{self.task}_scripted"
+            robot = "aloha_sim" if task.robot_type == "aloha" else "vib_arm"
+            self.repo_id = f"local/{robot}_{self.task}_scripted"
+        if self.image_height is None:
+            self.image_height = task.default_size[0]
+        if self.image_width is None:
+            self.image_width = task.default_size[1]
+        self.cameras = list(task.default_cameras if self.cameras is None else self.cameras)
         if self.root is None:
             self.root = HF_LEROBOT_HOME / self.repo_id
         if self.num_episodes < 1:

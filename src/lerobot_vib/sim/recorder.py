@@ -1,10 +1,10 @@
-"""Record scripted ALOHA demonstrations as a LeRobotDataset (v3, LeRobot's own writer).
+"""Record scripted demonstrations (ALOHA or the simulated arm) as a LeRobotDataset (v3, LeRobot's own writer).
 
-Each episode: script the end-effector task from the seed's object pose (`scripted.py`), check the joint
-replay succeeds in a physics-only env (cheap), then replay it in `FastAlohaEnv` rendering the requested
-cameras and record (observation_t, action_t) for t = 0..399. Failed seeds are skipped, so every saved
-episode is a success. Features match the Hub's `lerobot/aloha_sim_*_scripted` datasets:
-`observation.images.<camera>` (video), `observation.state` (14), `action` (14), fps 50, one task string.
+Each episode: script it from the seed's object pose and check that it succeeds in a physics-only env (cheap),
+then replay it in the rendering env and record (observation_t, action_t) for every step. Failed seeds are
+skipped, so every saved episode is a success. ALOHA's features match the Hub's `lerobot/aloha_sim_*_scripted`
+datasets: `observation.images.<camera>` (video), `observation.state` (14), `action` (14), fps 50, one task
+string; the arm's are the same with 7 joint values at 20 fps (`sim_tasks.py`).
 
 Seeds are consecutive from `seed`; `meta/scripted_recording.json` keeps the seed of every saved episode and
 every failed attempt, so a run can be resumed (`resume=True`) without re-recording or losing episodes.
@@ -26,22 +26,15 @@ from pathlib import Path
 
 import numpy as np
 import pyarrow.parquet as pq
+from gymnasium import Env
 from lerobot.datasets.lerobot_dataset import LeRobotDataset, LeRobotDatasetMetadata
 from tqdm import tqdm
 
-from .aloha_env import FastAlohaEnv
 from .env_config import SIDECAR
-from .scripted import SUCCESS_REWARD, script_episode
-from .tasks import TASK_STRINGS, check_cameras, check_task
+from .sim_tasks import get_task
 
 logger = logging.getLogger(__name__)
 
-FPS = 50
-MOTOR_NAMES = [
-    f"{side}_{joint}"
-    for side in ("left", "right")
-    for joint in ("waist", "shoulder", "elbow", "forearm_roll", "wrist_angle", "wrist_rotate", "gripper")
-]
 # What LeRobot writes under a dataset root; nothing else there is ever deleted or rewritten by the recorder.
 DATASET_DIRS = ("data", "meta", "videos", "images")
 RESTORED_FILES = ("meta/info.json", "meta/stats.json")  # rewritten by every save: restored, not size-checked
@@ -185,7 +178,8 @@ def _remove_empty_dirs(root: Path) -> None:
             (root / top).rmdir()
 
 
-def aloha_features(settings: RecordingSettings) -> dict:
+def dataset_features(settings: RecordingSettings) -> dict:
+    task = get_task(settings.task)
     dtype = "video" if settings.use_videos else "image"
     features = {
         f"observation.images.{cam}": {
@@ -195,20 +189,10 @@ def aloha_features(settings: RecordingSettings) -> dict:
         }
         for cam in settings.cameras
     }
-    features["observation.state"] = {"dtype": "float32", "shape": (14,), "names": MOTOR_NAMES}
-    features["action"] = {"dtype": "float32", "shape": (14,), "names": MOTOR_NAMES}
+    names = list(task.state_names)
+    features["observation.state"] = {"dtype": "float32", "shape": (len(names),), "names": names}
+    features["action"] = {"dtype": "float32", "shape": (len(names),), "names": names}
     return features
-
-
-def replay_max_reward(task: str, seed: int, actions: np.ndarray) -> float:
-    """Max reward of replaying `actions` from `reset(seed)` in the joint task, physics only."""
-    env = FastAlohaEnv(task, cameras=())
-    env.reset(seed=seed)
-    best = 0.0
-    for action in actions:
-        _, reward, *_ = env.step(action)
-        best = max(best, float(reward))
-    return best
 
 
 @dataclass
@@ -277,10 +261,8 @@ def record_scripted_dataset(
 
     `max_attempts` bounds the seeds tried in this call (default: 3 * episodes still missing + 10).
     """
-    check_task(settings.task)
-    check_cameras(settings.cameras)
-    if not settings.cameras:
-        raise ValueError("Record at least one camera.")
+    task = get_task(settings.task)
+    task.check_cameras(settings.cameras)
     if overwrite and resume:
         raise ValueError("Choose one of `overwrite` (start over) and `resume` (add to the dataset).")
     root = Path(root)
@@ -326,13 +308,7 @@ def record_scripted_dataset(
     missing = num_episodes - len(log.episode_seeds)
     next_seed = log.next_seed if log.next_seed is not None else seed
     max_attempts = 3 * max(missing, 0) + 10 if max_attempts is None else max_attempts
-    env = FastAlohaEnv(
-        settings.task,
-        cameras=settings.cameras,
-        observation_height=settings.image_height,
-        observation_width=settings.image_width,
-        shadows=settings.shadows,
-    )
+    env = task.make_env(settings.cameras, settings.image_height, settings.image_width, settings.shadows)
     bar = tqdm(total=num_episodes, initial=len(log.episode_seeds), desc=f"{settings.task}", disable=not progress)
     attempts = 0
     interrupt = _DeferredInterrupt()
@@ -346,13 +322,13 @@ def record_scripted_dataset(
                         f"in this run (seeds up to {next_seed - 1}); raise `max_attempts` to keep trying."
                     )
                 attempts += 1
-                episode = script_episode(settings.task, next_seed)
-                if replay_max_reward(settings.task, next_seed, episode.joint_actions) < SUCCESS_REWARD:
+                actions = task.scripted_actions(next_seed)
+                if actions is None:
                     log.failed_seeds.append(next_seed)
                 else:
                     if dataset is None:
                         dataset = _open_for_writing(root, repo_id, settings, new=not log.episode_seeds)
-                    _record_episode(dataset, env, settings, next_seed, episode.joint_actions, interrupt.check)
+                    _record_episode(dataset, env, settings, next_seed, actions, interrupt.check)
                     dataset.save_episode()
                     dataset.finalize()  # closes LeRobot's parquet writers: the episode's files are complete
                     dataset = None  # the next episode reopens the dataset and so writes files of its own
@@ -390,12 +366,13 @@ def _open_for_writing(root: Path, repo_id: str, settings: RecordingSettings, new
         return LeRobotDataset.resume(repo_id, root=root)
     if root.exists():
         root.rmdir()  # empty (checked above); LeRobot creates the folder itself
+    task = get_task(settings.task)
     dataset = LeRobotDataset.create(
         repo_id=repo_id,
-        fps=FPS,
-        features=aloha_features(settings),
+        fps=task.fps,
+        features=dataset_features(settings),
         root=root,
-        robot_type="aloha",
+        robot_type=task.robot_type,
         use_videos=settings.use_videos,
     )
     RecordingLog(settings=settings).save(root)  # marks the folder as this command's from its first file on
@@ -417,13 +394,13 @@ def _delete_dataset(root: Path) -> None:
 
 def _record_episode(
     dataset: LeRobotDataset,
-    env: FastAlohaEnv,
+    env: Env,
     settings: RecordingSettings,
     seed: int,
     actions: np.ndarray,
     check_interrupt: Callable[[], None],
 ) -> None:
-    task_string = TASK_STRINGS[settings.task]
+    task_string = get_task(settings.task).task_string
     obs, _ = env.reset(seed=seed)
     for action in actions:
         check_interrupt()

@@ -1,0 +1,211 @@
+"""VIB and ACT on the simulated arm with one budget: success over training, through LeRobot's own commands.
+
+Each variant is trained by `lerobot-train` (VIB from the preset, ACT with the same architecture, recipe and
+budget: `backbone_norm.ACT_FROM_VIB`), saving a checkpoint every `save_freq` steps. Every checkpoint is then
+evaluated by `lerobot-eval` on `--env.type=vib_arm` with the recording's settings, on the same episode seeds;
+the final VIB checkpoint also with black images (a policy that ignores vision would not notice). Wall time of
+a checkpoint: its file time minus the first timestamp of its training log. Everything is saved as it
+finishes, so a stopped run resumes (`lerobot-train --resume=true` for an unfinished training). The training
+commands that were run are kept in `<out>/<variant>/command.txt` and listed in the report.
+
+    python benchmarks/arm_learning.py --dataset_root data/arm_grasp_block --out outputs/arm_learning \
+        --output benchmarks/results/arm_learning_cpu_2core.md
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import platform
+import subprocess
+import sys
+from datetime import datetime
+from pathlib import Path
+
+import torch
+from backbone_norm import ACT_FROM_VIB, wilson_interval
+from report import cpu_name, emit
+
+ROOT = Path(__file__).resolve().parents[1]
+BIN = Path(sys.executable).parent
+
+
+def train_command(variant: str, preset_path: Path, preset: dict, args, out: Path) -> list[str]:
+    common = [
+        f"--dataset.repo_id={args.repo_id}",
+        f"--dataset.root={args.dataset_root}",
+        f"--output_dir={out}",
+        f"--seed={args.seed}",
+    ]
+    if variant == "vib":
+        return [str(BIN / "lerobot-train"), f"--config_path={preset_path}", *common]
+    policy = preset["policy"]
+    act = [f"--policy.{ACT_FROM_VIB[k]}={v}" for k, v in policy.items() if k in ACT_FROM_VIB]
+    run = [f"--{k}={preset[k]}" for k in ("batch_size", "steps", "num_workers", "log_freq", "save_freq")]
+    return [
+        str(BIN / "lerobot-train"),
+        "--policy.type=act",
+        "--policy.device=cpu",
+        "--policy.push_to_hub=false",
+        "--policy.pretrained_backbone_weights=null",
+        *act,
+        *run,
+        "--wandb.enable=false",
+        *common,
+    ]
+
+
+def train(variant: str, preset_path: Path, preset: dict, args) -> Path:
+    out = args.out / variant / "train"
+    last = out / "checkpoints" / "last" / "pretrained_model"
+    log = args.out / variant / "train.log"
+    if last.exists() and _step(last.parent) >= preset["steps"]:
+        return out
+    cmd = train_command(variant, preset_path, preset, args, out)
+    if last.exists():  # an interrupted training: LeRobot resumes from its last checkpoint
+        cmd = [cmd[0], f"--config_path={last / 'train_config.json'}", "--resume=true"]
+    print(f"{variant}: {' '.join(cmd)}", flush=True)
+    log.parent.mkdir(parents=True, exist_ok=True)
+    with (args.out / variant / "command.txt").open("a") as f:
+        f.write(" ".join(cmd) + "\n")
+    with log.open("a") as f:
+        subprocess.run(cmd, stdout=f, stderr=subprocess.STDOUT, check=True, env={**os.environ, "MUJOCO_GL": "egl"})
+    return out
+
+
+def _step(checkpoint: Path) -> int:
+    state = checkpoint / "training_state" / "training_step.json"
+    return json.loads(state.read_text())["step"] if state.exists() else int(checkpoint.name)
+
+
+def evaluate(checkpoint: Path, args, out: Path, extra: list[str] = ()) -> dict:
+    info_path = out / "eval_info.json"
+    if not info_path.exists():
+        cmd = [
+            str(BIN / "lerobot-eval"),
+            f"--policy.path={checkpoint}",
+            "--policy.device=cpu",
+            "--env.type=vib_arm",
+            f"--env.dataset_root={args.dataset_root}",
+            f"--eval.n_episodes={args.eval_episodes}",
+            f"--eval.batch_size={args.eval_batch_size}",
+            "--eval.use_async_envs=false",
+            f"--seed={args.eval_seed}",
+            f"--output_dir={out}",
+            *extra,
+        ]
+        print(" ".join(cmd), flush=True)
+        subprocess.run(cmd, check=True, capture_output=True, env={**os.environ, "MUJOCO_GL": "egl"})
+    overall = json.loads(info_path.read_text())["overall"]
+    return dict(success=round(overall["pc_success"] * overall["n_episodes"] / 100), n=overall["n_episodes"])
+
+
+def log_start(log: Path) -> float:
+    """The first timestamp LeRobot's training log prints (`INFO 2026-11-22 21:28:56 ...`)."""
+    for line in log.read_text(errors="replace").splitlines():
+        if line.startswith("INFO 2"):
+            return datetime.strptime(" ".join(line.split()[1:3]), "%Y-%m-%d %H:%M:%S").timestamp()
+    raise ValueError(f"No timestamp in {log}.")
+
+
+def main() -> None:
+    p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    p.add_argument("--dataset_root", type=Path, required=True)
+    p.add_argument("--repo_id", default="local/vib_arm_grasp_block_scripted")
+    p.add_argument("--preset", type=Path, default=ROOT / "configs/policy/vib_arm_sim.json")
+    p.add_argument("--variants", nargs="+", default=["vib", "act"], choices=["vib", "act"])
+    p.add_argument("--seed", type=int, default=1000)
+    p.add_argument("--eval_episodes", type=int, default=50)
+    p.add_argument("--eval_batch_size", type=int, default=10)
+    p.add_argument("--eval_seed", type=int, default=100000)
+    p.add_argument("--out", type=Path, default=Path("outputs/arm_learning"))
+    p.add_argument("--output", type=Path, default=None, help="write the Markdown report here")
+    args = p.parse_args()
+    preset = json.loads(args.preset.read_text())
+
+    rows = []
+    for variant in args.variants:
+        train_dir = train(variant, args.preset, preset, args)
+        start = log_start(args.out / variant / "train.log")
+        checkpoints = sorted(
+            (c for c in (train_dir / "checkpoints").iterdir() if c.name.isdigit()), key=lambda c: int(c.name)
+        )
+        for ckpt in checkpoints:
+            model = ckpt / "pretrained_model"
+            wall = (model / "model.safetensors").stat().st_mtime - start
+            result = evaluate(model, args, args.out / variant / f"eval_{ckpt.name}")
+            rows.append(dict(variant=variant, step=int(ckpt.name), wall_s=wall, images="clean", **result))
+            print(f"{variant} step {ckpt.name}: {result['success']}/{result['n']}", flush=True)
+        if variant == "vib":
+            blind = evaluate(
+                checkpoints[-1] / "pretrained_model", args, args.out / variant / "eval_black",
+                ["--env.perturbation.black_images=true"],
+            )  # fmt: skip
+            rows.append(dict(variant=variant, step=int(checkpoints[-1].name), wall_s=None, images="black", **blind))
+    (args.out / "results.json").write_text(json.dumps(rows, indent=2))
+    emit(render(args, preset, rows), args.output)
+    plot(rows, args)
+
+
+def render(args, preset: dict, rows: list[dict]) -> str:
+    lines = [
+        "# The simulated arm: VIB and ACT learning to grasp with one CPU budget",
+        "",
+        f"Machine: {cpu_name()}, CPU only; torch {torch.__version__}, Python {platform.python_version()}.",
+        f"Command: `python benchmarks/{Path(__file__).name} {' '.join(sys.argv[1:])}`",
+        "",
+        f"Data: {args.dataset_root} (scripted grasps recorded by `lerobot-vib-record-sim --task=grasp_block`). "
+        f"Recipe: `{args.preset.name}` (batch {preset['batch_size']}, {preset['steps']} steps, seed {args.seed}); "
+        f"ACT is LeRobot's with the same sizes, learning rates and budget. Evaluation: `lerobot-eval "
+        f"--env.type=vib_arm`, {args.eval_episodes} episodes from seed {args.eval_seed}, the same for every row.",
+        "",
+        "| policy | step | wall time (min) | images | success (95% Wilson) |",
+        "| --- | ---: | ---: | --- | ---: |",
+    ]
+    for r in rows:
+        low, high = wilson_interval(r["success"], r["n"])
+        wall = "-" if r["wall_s"] is None else f"{r['wall_s'] / 60:.0f}"
+        lines.append(
+            f"| {r['variant']} | {r['step']} | {wall} | {r['images']} | {r['success']}/{r['n']} "
+            f"({100 * r['success'] / r['n']:.0f}%, {100 * low:.0f}-{100 * high:.0f}%) |"
+        )
+    lines += [
+        "",
+        "Training commands:",
+        "",
+        *[
+            f"- {v}: `{line}`"
+            for v in args.variants
+            for line in (args.out / v / "command.txt").read_text().splitlines()
+            if (args.out / v / "command.txt").exists()
+        ],
+        "",
+        "Wall time includes everything the training process did up to that checkpoint (data loading, saving), "
+        "on a machine where other work may have shared the two cores; evaluation time is not included.",
+        "",
+        f"![success over training]({Path(args.output).stem}.png)" if args.output else "",
+    ]
+    return "\n".join(lines) + "\n"
+
+
+def plot(rows: list[dict], args) -> None:
+    try:
+        import matplotlib
+
+        matplotlib.use("Agg")
+        import matplotlib.pyplot as plt
+    except ImportError:
+        return
+    fig, ax = plt.subplots(figsize=(6, 4))
+    for variant in args.variants:
+        clean = [r for r in rows if r["variant"] == variant and r["images"] == "clean"]
+        ax.plot([r["step"] for r in clean], [100 * r["success"] / r["n"] for r in clean], marker="o", label=variant)
+    ax.set(xlabel="training step", ylabel="success (%)", ylim=(-2, 102), title="grasp_block, clean episodes")
+    ax.legend()
+    fig.tight_layout()
+    fig.savefig(args.output.with_suffix(".png") if args.output else args.out / "success.png", dpi=100)
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,209 @@
+"""`ArmGraspEnv`: the simulated 6-DoF arm grasping a block, as a gymnasium env in LeRobot's layout.
+
+Observations are `{"pixels": {camera: HxWx3 uint8}, "agent_pos": (7,)}` (six joint angles and the gripper
+opening in [0, 1]); the action is the 7 targets of the same quantities, at 20 Hz. `reset(seed)` draws the
+block's position and yaw (and the episode's perturbations) from the seed alone.
+
+Reward per step: 0, 0.5 while both fingers touch the block, 1 while the block is lifted (its bottom at
+least `LIFT_SUCCESS` above the table). Success, which ends the episode: lifted for `HOLD_STEPS` steps in a
+row.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from typing import ClassVar
+
+import gymnasium as gym
+import mujoco
+import numpy as np
+from gymnasium import spaces
+
+from .arm_scene import (
+    BLOCK_HALF,
+    BLOCK_RGBA,
+    CAMERAS,
+    FINGER_TRAVEL,
+    HOME,
+    JOINTS,
+    OCCLUDER_PARKED,
+    load_model,
+)
+from .perturbations import ImagePerturbation, PerturbationConfig, draw_scene_episode
+
+TASK = "grasp_block"
+TASK_STRING = "Pick up the block."
+FPS = 20
+EPISODE_LENGTH = 100
+SUBSTEPS = 25  # 0.002 s physics steps per 0.05 s control step
+LIFT_SUCCESS = 0.04
+HOLD_STEPS = 5
+# Block placement, drawn uniformly per episode (metres, radians): in front of the arm, any yaw of the cube.
+BLOCK_X, BLOCK_Y, BLOCK_YAW = (0.30, 0.48), (-0.14, 0.14), (-np.pi / 4, np.pi / 4)
+OCCLUDER_AT = np.array([0.7, 0.0, 0.3])  # between the scene camera and the workspace
+
+
+def block_pose(seed: int | None) -> tuple[np.ndarray, float]:
+    """The block's centre (x, y on the table) and yaw for `seed`."""
+    rng = np.random.default_rng(seed)
+    xy = np.array([rng.uniform(*BLOCK_X), rng.uniform(*BLOCK_Y)])
+    return xy, float(rng.uniform(*BLOCK_YAW))
+
+
+def check_cameras(cameras: Sequence[str]) -> tuple[str, ...]:
+    unknown = [c for c in cameras if c not in CAMERAS]
+    if unknown:
+        raise ValueError(f"Unknown arm camera(s) {unknown}; the scene has {list(CAMERAS)}.")
+    return tuple(cameras)
+
+
+class ArmGraspEnv(gym.Env):
+    metadata: ClassVar[dict] = {"render_modes": ["rgb_array"], "render_fps": FPS}
+
+    def __init__(
+        self,
+        observation_height: int = 96,
+        observation_width: int = 128,
+        cameras: Sequence[str] = ("scene",),
+        shadows: bool = True,
+        perturbation: PerturbationConfig | dict | None = None,
+        render_mode: str = "rgb_array",
+        visualization_height: int = 240,
+        visualization_width: int = 320,
+        obs_type: str = "pixels_agent_pos",
+    ):
+        if obs_type != "pixels_agent_pos":
+            raise ValueError(f"ArmGraspEnv supports obs_type='pixels_agent_pos' only, got {obs_type!r}.")
+        if isinstance(perturbation, dict):
+            perturbation = PerturbationConfig(**perturbation)
+        self.perturbation = perturbation or PerturbationConfig()
+        self.cameras = check_cameras(cameras)
+        self.height, self.width = observation_height, observation_width
+        self.vis_size = (visualization_height, visualization_width)
+        self.render_mode = render_mode
+        self.shadows = shadows
+        self.model = load_model()
+        self.data = mujoco.MjData(self.model)
+        self._renderers: dict[tuple[int, int], mujoco.Renderer] = {}
+        self._ids()
+        self._cam_pos0 = self.model.cam_pos[self._scene_cam].copy()
+        self._cam_quat0 = self.model.cam_quat[self._scene_cam].copy()
+        self.image_perturbation = ImagePerturbation(self.perturbation)
+        self.scene = draw_scene_episode(self.perturbation, None)
+        self.step_count = 0
+        self.lifted_steps = 0
+
+        image = spaces.Box(0, 255, shape=(observation_height, observation_width, 3), dtype=np.uint8)
+        self.observation_space = spaces.Dict(
+            {
+                "pixels": spaces.Dict({cam: image for cam in self.cameras}),
+                "agent_pos": spaces.Box(-10.0, 10.0, shape=(len(JOINTS) + 1,), dtype=np.float64),
+            }
+        )
+        low = np.append(self.model.actuator_ctrlrange[: len(JOINTS), 0], 0.0)
+        high = np.append(self.model.actuator_ctrlrange[: len(JOINTS), 1], 1.0)
+        self.action_space = spaces.Box(low.astype(np.float32), high.astype(np.float32), dtype=np.float32)
+
+    def _ids(self) -> None:
+        m = self.model
+        self._qadr = np.array([m.joint(j).qposadr[0] for j in JOINTS])
+        self._finger = m.joint("finger_left").qposadr[0]
+        self._finger_r = m.joint("finger_right").qposadr[0]
+        self._block_qadr = m.joint("block").qposadr[0]
+        self._block_geom = m.geom("block").id
+        self._finger_geoms = {m.body("finger_left").id, m.body("finger_right").id}
+        self._occluder = m.body("occluder").mocapid[0]
+        self._scene_cam = m.camera("scene").id
+
+    @property
+    def task_description(self) -> str:
+        return TASK_STRING
+
+    @property
+    def block_half(self) -> float:
+        return float(self.model.geom_size[self._block_geom][0])
+
+    def reset(self, *, seed: int | None = None, options: dict | None = None):
+        super().reset(seed=seed)
+        if seed is None:  # an unseeded episode still needs a reproducible draw from the env's generator
+            seed = int(self.np_random.integers(2**31))
+        self.scene = draw_scene_episode(self.perturbation, seed)
+        self.image_perturbation.reset(seed)
+        half = self.scene.block_half or BLOCK_HALF
+        self.model.geom_size[self._block_geom] = half
+        self.model.geom_rgba[self._block_geom] = self.scene.block_rgba or BLOCK_RGBA
+        mujoco.mj_resetData(self.model, self.data)
+        xy, yaw = block_pose(seed)
+        self.data.qpos[self._qadr] = HOME
+        self.data.qpos[self._finger] = self.data.qpos[self._finger_r] = FINGER_TRAVEL
+        self.data.qpos[self._block_qadr : self._block_qadr + 7] = [*xy, half, np.cos(yaw / 2), 0, 0, np.sin(yaw / 2)]
+        self.data.ctrl[: len(JOINTS)] = HOME
+        self.data.ctrl[len(JOINTS)] = FINGER_TRAVEL
+        self.step_count = self.lifted_steps = 0
+        self._place_scene_perturbations()
+        mujoco.mj_forward(self.model, self.data)
+        return self._observation(), {"is_success": False}
+
+    def step(self, action):
+        action = np.asarray(action, dtype=np.float64)
+        if action.shape != (len(JOINTS) + 1,) or not np.all(np.isfinite(action)):
+            raise ValueError(f"ArmGraspEnv expects 7 finite action values, got shape {action.shape}: {action}.")
+        self.data.ctrl[: len(JOINTS)] = action[: len(JOINTS)]
+        self.data.ctrl[len(JOINTS)] = np.clip(action[len(JOINTS)], 0.0, 1.0) * FINGER_TRAVEL
+        mujoco.mj_step(self.model, self.data, nstep=SUBSTEPS)
+        self.step_count += 1
+        self._place_scene_perturbations()
+        mujoco.mj_forward(self.model, self.data)  # the moved camera and occluder are in the rendered frame
+        lifted = self.block_height() - self.block_half >= LIFT_SUCCESS
+        self.lifted_steps = self.lifted_steps + 1 if lifted else 0
+        reward = 1.0 if lifted else 0.5 if self.fingers_touch_block() else 0.0
+        success = self.lifted_steps >= HOLD_STEPS
+        return self._observation(), reward, success, False, {"is_success": success}
+
+    def block_height(self) -> float:
+        return float(self.data.qpos[self._block_qadr + 2])
+
+    def fingers_touch_block(self) -> bool:
+        touching = set()
+        for c in self.data.contact[: self.data.ncon]:
+            for mine, other in ((c.geom1, c.geom2), (c.geom2, c.geom1)):
+                if mine == self._block_geom and self.model.geom_bodyid[other] in self._finger_geoms:
+                    touching.add(int(self.model.geom_bodyid[other]))
+        return len(touching) == 2
+
+    def _place_scene_perturbations(self) -> None:
+        occluded = self.scene.occluded(self.step_count)
+        self.data.mocap_pos[self._occluder] = OCCLUDER_AT if occluded else OCCLUDER_PARKED
+        if self.scene.shake > 0:
+            rng, amp = self.scene.rng, self.scene.shake
+            self.model.cam_pos[self._scene_cam] = self._cam_pos0 + rng.uniform(-amp, amp, 3)
+            turn = np.zeros(4)
+            mujoco.mju_axisAngle2Quat(turn, rng.normal(size=3) / np.sqrt(3) + 1e-9, rng.uniform(-10 * amp, 10 * amp))
+            mujoco.mju_mulQuat(self.model.cam_quat[self._scene_cam], self._cam_quat0, turn)
+        else:
+            self.model.cam_pos[self._scene_cam] = self._cam_pos0
+            self.model.cam_quat[self._scene_cam] = self._cam_quat0
+
+    def _renderer(self, height: int, width: int) -> mujoco.Renderer:
+        if (height, width) not in self._renderers:
+            self._renderers[(height, width)] = mujoco.Renderer(self.model, height, width)
+        return self._renderers[(height, width)]
+
+    def _render(self, camera: str, height: int, width: int) -> np.ndarray:
+        renderer = self._renderer(height, width)
+        renderer.update_scene(self.data, camera=camera)
+        renderer.scene.flags[mujoco.mjtRndFlag.mjRND_SHADOW] = self.shadows
+        return renderer.render()
+
+    def _observation(self) -> dict:
+        state = np.append(self.data.qpos[self._qadr], self.data.qpos[self._finger] / FINGER_TRAVEL)
+        pixels = {c: self.image_perturbation(self._render(c, self.height, self.width)) for c in self.cameras}
+        return {"pixels": pixels, "agent_pos": state}
+
+    def render(self) -> np.ndarray:
+        return self._render("scene", *self.vis_size)
+
+    def close(self) -> None:
+        for renderer in self._renderers.values():
+            renderer.close()
+        self._renderers.clear()
