@@ -120,13 +120,15 @@ def main() -> None:
     p.add_argument("--eval_batch_size", type=int, default=10)
     p.add_argument("--eval_seed", type=int, default=100000)
     p.add_argument("--out", type=Path, default=Path("outputs/arm_learning"))
+    p.add_argument("--note", default="", help="a remark on how this run went, printed in the report")
+    p.add_argument("--eval_only", action="store_true", help="evaluate the checkpoints saved so far; train nothing")
     p.add_argument("--output", type=Path, default=None, help="write the Markdown report here")
     args = p.parse_args()
     preset = json.loads(args.preset.read_text())
 
     rows = []
     for variant in args.variants:
-        train_dir = train(variant, args.preset, preset, args)
+        train_dir = args.out / variant / "train" if args.eval_only else train(variant, args.preset, preset, args)
         start = log_start(args.out / variant / "train.log")
         checkpoints = sorted(
             (c for c in (train_dir / "checkpoints").iterdir() if c.name.isdigit()), key=lambda c: int(c.name)
@@ -183,6 +185,7 @@ def render(args, preset: dict, rows: list[dict]) -> str:
         "",
         "Wall time includes everything the training process did up to that checkpoint (data loading, saving), "
         "on a machine where other work may have shared the two cores; evaluation time is not included.",
+        *(["", f"Note: {args.note}"] if args.note else []),
         "",
         f"![success over training]({Path(args.output).stem}.png)" if args.output else "",
     ]
