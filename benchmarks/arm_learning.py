@@ -24,8 +24,10 @@ from datetime import datetime
 from pathlib import Path
 
 import torch
-from backbone_norm import ACT_FROM_VIB, wilson_interval
 from report import cpu_name, emit
+
+from lerobot_vib.metrics import wilson_interval
+from lerobot_vib.scripts.benchmark import ACT_FROM_VIB
 
 ROOT = Path(__file__).resolve().parents[1]
 BIN = Path(sys.executable).parent

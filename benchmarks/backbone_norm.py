@@ -41,23 +41,13 @@ from report import cpu_name, emit
 
 from lerobot_vib.backbone import swap_norm_layers
 from lerobot_vib.configuration_vib import VIBConfig
+from lerobot_vib.metrics import wilson_interval
+from lerobot_vib.scripts.benchmark import ACT_FROM_VIB
 from lerobot_vib.sim.env_config import AlohaFastEnv
 from lerobot_vib.sim.recorder import SIDECAR
 
 ROOT = Path(__file__).resolve().parents[1]
 # VIB fields that ACT shares under another name (the preset sets VIB's; ACT gets the same sizes).
-ACT_FROM_VIB = {
-    "chunk_size": "chunk_size",
-    "n_action_steps": "n_action_steps",
-    "dim_model": "dim_model",
-    "n_heads": "n_heads",
-    "dim_feedforward": "dim_feedforward",
-    "n_layers": "n_encoder_layers",
-    "dropout": "dropout",
-    "optimizer_lr": "optimizer_lr",
-    "optimizer_lr_backbone": "optimizer_lr_backbone",
-    "optimizer_weight_decay": "optimizer_weight_decay",
-}
 
 
 def policy_config(kind: str, norm: str, preset: dict) -> VIBConfig | ACTConfig:
@@ -277,16 +267,6 @@ def render(args, preset: dict, recording: dict, results: dict) -> str:
     ]
     lines += ["", f"![curves]({Path(args.output).stem}.png)" if args.output else ""]
     return "\n".join(lines) + "\n"
-
-
-def wilson_interval(successes: int, n: int, z: float = 1.959964) -> tuple[float, float]:
-    """95% Wilson score interval of a success rate."""
-    if n == 0:
-        return 0.0, 1.0
-    p = successes / n
-    center = (p + z * z / (2 * n)) / (1 + z * z / n)
-    half = z * math.sqrt(p * (1 - p) / n + z * z / (4 * n * n)) / (1 + z * z / n)
-    return max(center - half, 0.0), min(center + half, 1.0)
 
 
 def plot(args, results: dict) -> None:

@@ -69,7 +69,7 @@ def test_missing_camera_in_observation_fails_before_any_action(policy):
     policy.reset()
     with pytest.raises(KeyError, match=r"observation\.images\.top"):
         policy.select_action(obs)
-    assert policy.last_step is None and policy._last_command is None
+    assert policy.last_step is None and policy.runtime.last_command is None
 
 
 def test_wrong_image_shape_fails_before_any_action(policy):
@@ -79,7 +79,7 @@ def test_wrong_image_shape_fails_before_any_action(policy):
     for call in (policy.select_action, policy.predict_action_chunk):
         with pytest.raises(ValueError, match=r"observation.images.top.*\(2, 3, 64, 64\).*\(batch, 3, 32, 32\)"):
             call(obs)
-    assert policy.last_step is None and policy._last_command is None
+    assert policy.last_step is None and policy.runtime.last_command is None
 
 
 def test_unbatched_state(policy):

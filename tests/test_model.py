@@ -65,7 +65,7 @@ def test_select_action_pops_a_queue_of_n_action_steps_then_replans():
     assert calls == 2  # one chunk for steps 0-3, a new one at step 4
     torch.testing.assert_close(torch.cat(actions[:4]), chunk[0, :4])
     policy.reset()
-    assert len(policy._action_queue) == 0
+    assert not policy.runtime.queued
 
 
 def test_inference_uses_the_posterior_mean_unless_told_to_sample():

@@ -163,7 +163,7 @@ def test_home_without_dataset_statistics_fails_before_any_action():
     policy = VIBPolicy(cfg)  # built without dataset_stats
     with pytest.raises(RuntimeError, match="normalization statistics"):
         policy.select_action(make_batch(cfg, batch_size=1, with_action=False))
-    assert policy._last_command is None
+    assert policy.runtime.last_command is None
 
 
 def test_a_policy_without_rate_statistics_refuses_to_act():

@@ -18,7 +18,6 @@ import contextlib
 import contextvars
 import logging
 import math
-from collections import deque
 from collections.abc import Iterator
 from dataclasses import dataclass
 from pathlib import Path
@@ -28,7 +27,7 @@ from typing import Any
 import torch
 import torch.nn.functional as F
 from huggingface_hub import ModelCard
-from lerobot.policies.act.modeling_act import ACTEncoder, ACTTemporalEnsembler, create_sinusoidal_pos_embedding
+from lerobot.policies.act.modeling_act import ACTEncoder, create_sinusoidal_pos_embedding
 from lerobot.policies.diffusion.modeling_diffusion import SpatialSoftmax
 from lerobot.policies.pretrained import PreTrainedPolicy
 from lerobot.utils.constants import ACTION, OBS_ENV_STATE, OBS_STATE
@@ -38,7 +37,7 @@ from .backbone import build_resnet_trunk
 from .bottleneck import GaussianBottleneck, Posterior
 from .calibration import RateTracker, mean_plus_2std_gamma
 from .configuration_vib import VIBConfig
-from .ensembling import UncertaintyWeightedEnsembler
+from .runtime import ChunkRuntime
 from .safety import RobotUnits, SafetyAction, SafetyMonitor
 
 logger = logging.getLogger(__name__)
@@ -274,11 +273,11 @@ class VIBPolicy(PreTrainedPolicy):
 
     def reset(self) -> None:
         """Call whenever the environment is reset."""
-        self._action_queue: deque[Tensor] = deque(maxlen=self.config.n_action_steps)
-        self._act_ensembler = ACTTemporalEnsembler(self.config.temporal_ensemble_coeff, self.config.chunk_size)
-        self._u_ensembler = UncertaintyWeightedEnsembler(self.config.temporal_ensemble_coeff, self.config.chunk_size)
-        self._monitor: SafetyMonitor | None = None  # built at the first step: thresholds may come from loaded buffers
-        self._last_command: Tensor | None = None
+        cfg = self.config
+        # The safety monitor is built at the first step: thresholds may come from loaded buffers.
+        self.runtime = ChunkRuntime(
+            cfg.temporal_ensemble, cfg.chunk_size, cfg.n_action_steps, cfg.temporal_ensemble_coeff
+        )
         self._batch_size: int | None = None
         self.last_step = None
 
@@ -324,7 +323,7 @@ class VIBPolicy(PreTrainedPolicy):
                 gamma,
             )
         resume = safety.resume_threshold if safety.resume_threshold is not None else gamma
-        self._monitor = SafetyMonitor(gamma, resume, safety.resume_steps)
+        self.runtime.reset(SafetyMonitor(gamma, resume, safety.resume_steps))
 
     # ---------------------------------------------------------------------------------------------- input checks
 
@@ -392,8 +391,8 @@ class VIBPolicy(PreTrainedPolicy):
         """One action per call, with the uncertainty of this step's observation in `last_step`.
 
         Every step encodes the observation (the rate needs it); chunks are decoded when the action queue
-        runs out, or every step with temporal ensembling. The safety monitor then decides: while stopped the
-        safety action is emitted; a non-finite u, observation or action always stops (unknown means stop).
+        runs out, or every step with temporal ensembling (`runtime.py` decides). A non-finite u, observation
+        or action always stops (unknown means stop).
         """
         self.eval()
         batch_size = self._check_observation(batch)
@@ -403,7 +402,7 @@ class VIBPolicy(PreTrainedPolicy):
                 "ensembled actions belong to the old batch. Call `policy.reset()` when the environments are reset."
             )
         self._batch_size = batch_size
-        if self._monitor is None:
+        if self.runtime.monitor is None:
             self._start_episode()
         obs_finite = torch.stack([torch.isfinite(batch[k]).flatten(1).all(dim=1) for k in self._used_inputs]).all(0)
 
@@ -412,28 +411,23 @@ class VIBPolicy(PreTrainedPolicy):
         else:
             posterior, rate = self._encode(batch)
             u = rate / self.rate_mean()
-        decision = self._monitor.update(u, unknown=~obs_finite)
-        if decision.resumed.any():
-            self._clear_plans()  # plans made before the stop belong to another situation
-        stopped = decision.stopped
-        if stopped.all():
-            action = self._safety_action(batch, batch_size)
-        else:
-            action = self._plan(posterior, u)
-            bad = ~torch.isfinite(action).all(dim=-1)
-            if bad.any():
-                self._monitor.force_stop(bad)
-                stopped = stopped | bad
-            if stopped.any():
-                action = torch.where(stopped.unsqueeze(-1), self._safety_action(batch, batch_size), action)
-        self._last_command = action
+
+        def decode() -> Tensor:
+            if posterior is None:
+                raise RuntimeError("A chunk must be planned but the observation was not encoded.")
+            z = posterior.sample() if self.config.sample_latent_at_inference else posterior.mean
+            return self.model.decoder(z)
+
+        action, decision = self.runtime.step(
+            u, decode, lambda last: self._safety_action(batch, batch_size, last), unknown=~obs_finite
+        )
         self.last_rate = rate
         self.last_step = UncertaintyStep(
             rate=rate,
             u=u,
             gamma=self.stop_threshold(),
             threshold_active=self.config.safety.enabled,
-            stopped=stopped,
+            stopped=decision.stopped,
             just_stopped=decision.just_stopped,
             resumed=decision.resumed,
         )
@@ -443,44 +437,22 @@ class VIBPolicy(PreTrainedPolicy):
         """With `uncertainty_every_step=False`, steps served from the action queue skip the network."""
         return (
             not self.config.uncertainty_every_step
-            and self.config.temporal_ensemble == "none"
-            and len(self._action_queue) > 0
+            and self.runtime.queued
             and self.last_step is not None
-            and not bool(self._monitor.stopped.any())
+            and not self.runtime.any_stopped
         )
 
     def _encode(self, batch: dict[str, Tensor]) -> tuple[Posterior, Tensor]:
         posterior = self.model.encode(batch)
         return posterior, self.model.bottleneck.rate(posterior)
 
-    def _plan(self, posterior: Posterior | None, u: Tensor) -> Tensor:
-        """The next action from the queue or the ensemble, decoding a chunk when needed."""
-        mode = self.config.temporal_ensemble
-        if mode == "none" and self._action_queue:
-            return self._action_queue.popleft()
-        if posterior is None:
-            raise RuntimeError("A chunk must be planned but the observation was not encoded.")
-        z = posterior.sample() if self.config.sample_latent_at_inference else posterior.mean
-        chunk = self.model.decoder(z)
-        if mode == "none":
-            self._action_queue.extend(chunk[:, : self.config.n_action_steps].transpose(0, 1))
-            return self._action_queue.popleft()
-        if mode == "act":
-            return self._act_ensembler.update(chunk)
-        return self._u_ensembler.update(chunk, u)
-
-    def _clear_plans(self) -> None:
-        self._action_queue.clear()
-        self._act_ensembler.reset()
-        self._u_ensembler.reset()
-
-    def _safety_action(self, batch: dict[str, Tensor], batch_size: int) -> Tensor:
+    def _safety_action(self, batch: dict[str, Tensor], batch_size: int, last_command: Tensor | None) -> Tensor:
         """`hold` (the last command) or a bounded step towards `home`, in the policy's normalized space."""
         safety = self.config.safety
-        if safety.action == "hold" and self._last_command is not None:
-            return self._last_command
+        if safety.action == "hold" and last_command is not None:
+            return last_command
         # Robot units from here on: the home pose and its per-step bound are physical.
-        last = None if self._last_command is None else self.robot_units.to_robot(ACTION, self._last_command)
+        last = None if last_command is None else self.robot_units.to_robot(ACTION, last_command)
         measured = None
         state = batch.get(OBS_STATE)
         if (

@@ -60,7 +60,13 @@ class UncertaintyCapture:
 
             def select_and_record(batch: dict, **select_kwargs: Any):
                 action = select_action(batch, **select_kwargs)
-                s = policy.last_step
+                s = getattr(policy, "last_step", None)
+                if s is None:  # a policy without a score (LeRobot's ACT): the steps still count
+                    nan, no = np.full(action.shape[0], np.nan), np.zeros(action.shape[0], dtype=bool)
+                    steps.append(
+                        {"rate": nan, "u": nan, "stopped": no, "just_stopped": no, "gamma": nan, "safety": False}
+                    )
+                    return action
                 steps.append(
                     {
                         "rate": s.rate.float().cpu().numpy(),

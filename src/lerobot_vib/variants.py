@@ -1,0 +1,194 @@
+"""The rows of the paper's Table I as policies that LeRobot's eval loop can run.
+
+Two trained networks (a VIB and an ACT checkpoint, same data and budget) and one RND give every row; rows
+that differ only at run time share a checkpoint:
+
+    row          chunks from   executed by (runtime.py)          u (recorded every step)
+    act          ACT           LeRobot's ACT, action queue        -
+    act_te       ACT           LeRobot's ACT, its ensembling      -
+    vib          VIB           Eq. 6                              VIB rate
+    vib_queue    VIB           action queue                       VIB rate (not used)
+    vib_wo_u     VIB           ACT's ensembling                   VIB rate (not used)
+    act_u        ACT           Eq. 6                              VIB rate of the VIB checkpoint
+    act_rnd      ACT           Eq. 6                              RND
+    vib_rnd      VIB           Eq. 6                              RND
+
+"ACT w/ Uncertainty" is not defined by the paper. Here it is ACT's chunks weighted by Eq. 6 with the u of
+the VIB network trained on the same data: the uncertainty ACT lacks comes from the bottleneck, so that
+`act_u` against `act_rnd` compares two scores driving the same actions, and `act_u` against `vib` separates
+what the score does at run time from what the bottleneck does to the learned features.
+
+The rows with a score are `ScoredChunkPolicy` (a chunk source, a score, and the shared `ChunkRuntime`) or
+`VIBPolicy` itself; the safety stop is off in all of them (the benchmark judges thresholds offline on the
+recorded u, so one rollout serves every threshold).
+"""
+
+from __future__ import annotations
+
+import copy
+import math
+from collections.abc import Callable
+from dataclasses import dataclass
+from typing import Any
+
+import torch
+from lerobot.configs.policies import PreTrainedConfig
+from lerobot.policies.act.modeling_act import ACTPolicy
+from lerobot.policies.pretrained import PreTrainedPolicy
+from torch import Tensor
+
+from .modeling_vib import UncertaintyStep, VIBPolicy
+from .rnd import RND
+from .runtime import ChunkRuntime
+from .safety import SafetyAction, SafetyMonitor
+
+ENSEMBLE_COEFF = 0.01  # ACT's default m, for every ensembling row
+
+
+@dataclass(frozen=True)
+class Variant:
+    label: str  # as in the paper's Table I
+    chunks: str  # "vib" or "act": the network that predicts the chunks
+    ensemble: str  # runtime.py's mode
+    score: str | None  # "vib", "rnd" or None: the u recorded (and used by Eq. 6)
+
+
+VARIANTS: dict[str, Variant] = {
+    "act": Variant("ACT", "act", "none", None),
+    "act_te": Variant("ACT (its temporal ensembling)", "act", "act", None),
+    "vib": Variant("VIB (Eq. 6)", "vib", "uncertainty", "vib"),
+    "vib_queue": Variant("VIB (action queue)", "vib", "none", "vib"),
+    "act_u": Variant("ACT w/ Uncertainty", "act", "uncertainty", "vib"),
+    "act_rnd": Variant("ACT w/ RND", "act", "uncertainty", "rnd"),
+    "vib_wo_u": Variant("VIB wo/ Uncertainty", "vib", "act", "vib"),
+    "vib_rnd": Variant("VIB r/RND", "vib", "uncertainty", "rnd"),
+}
+
+
+def vib_score(vib: VIBPolicy) -> Callable[[dict[str, Tensor]], tuple[Tensor, Tensor]]:
+    """batch -> (rate, u = rate / R_bar) of a VIB network."""
+
+    @torch.no_grad()
+    def score(batch: dict[str, Tensor]) -> tuple[Tensor, Tensor]:
+        vib.eval()
+        rate = vib.model.bottleneck.rate(vib.model.encode(batch))
+        return rate, rate / vib.rate_mean()
+
+    return score
+
+
+def rnd_score(rnd: RND) -> Callable[[dict[str, Tensor]], tuple[Tensor, Tensor]]:
+    """batch -> (e, u_RND = e / e_bar)."""
+
+    @torch.no_grad()
+    def score(batch: dict[str, Tensor]) -> tuple[Tensor, Tensor]:
+        error = rnd.error(batch)
+        return error, error / float(rnd.error_mean)
+
+    return score
+
+
+class ScoredChunkPolicy(PreTrainedPolicy):
+    """Chunks from one policy, u from any score, and the shared run-time layer between them.
+
+    `last_step` holds the step's score and u like VIBPolicy's, so the same traces come out of both.
+    A non-finite u, observation or action stops the env (the last command is held).
+    """
+
+    config_class = PreTrainedConfig
+    name = "vib_scored_chunks"
+
+    def __init__(
+        self,
+        chunk_policy: PreTrainedPolicy,
+        score: Callable[[dict[str, Tensor]], tuple[Tensor, Tensor]],
+        ensemble: str = "uncertainty",
+        coeff: float = ENSEMBLE_COEFF,
+    ):
+        super().__init__(chunk_policy.config)
+        self.chunk_policy = chunk_policy
+        self.score = score
+        cfg = chunk_policy.config
+        n_action_steps = cfg.n_action_steps if ensemble == "none" else 1
+        self.runtime = ChunkRuntime(ensemble, cfg.chunk_size, n_action_steps, coeff)
+        self._hold = SafetyAction("hold")
+        self.last_step: UncertaintyStep | None = None
+        self.reset()
+
+    def reset(self) -> None:
+        self.runtime.reset(SafetyMonitor(gamma=None))
+        self.last_step = None
+
+    def get_optim_params(self) -> dict:
+        raise NotImplementedError("A ScoredChunkPolicy runs trained networks; train them separately.")
+
+    def forward(self, batch: dict[str, Tensor]) -> tuple[Tensor, dict | None]:
+        raise NotImplementedError("A ScoredChunkPolicy runs trained networks; train them separately.")
+
+    @torch.no_grad()
+    def predict_action_chunk(self, batch: dict[str, Tensor], **kwargs: Any) -> Tensor:
+        return self.chunk_policy.predict_action_chunk(batch)
+
+    @torch.no_grad()
+    def select_action(self, batch: dict[str, Tensor], **kwargs: Any) -> Tensor:
+        images_and_state = [v for k, v in batch.items() if k.startswith("observation.") and isinstance(v, Tensor)]
+        finite = torch.stack([torch.isfinite(v).flatten(1).all(1) for v in images_and_state]).all(0)
+        raw, u = self.score(batch)
+        action, decision = self.runtime.step(
+            u,
+            lambda: self.chunk_policy.predict_action_chunk(batch),
+            lambda last: self._hold(last, batch_size=u.shape[0]),
+            unknown=~finite,
+        )
+        self.last_step = UncertaintyStep(
+            rate=raw,
+            u=u,
+            gamma=math.nan,
+            threshold_active=False,
+            stopped=decision.stopped,
+            just_stopped=decision.just_stopped,
+            resumed=decision.resumed,
+        )
+        return action
+
+
+def vib_with(vib: VIBPolicy, ensemble: str) -> VIBPolicy:
+    """The VIB checkpoint run with another ensembling mode (its own `select_action`), the stop off."""
+    config = copy.deepcopy(vib.config)
+    config.temporal_ensemble = ensemble
+    config.temporal_ensemble_coeff = ENSEMBLE_COEFF
+    config.safety.enabled = False
+    config.uncertainty_every_step = True  # the u trace needs every step, also under the queue
+    policy = VIBPolicy(config)
+    policy.load_state_dict(vib.state_dict())
+    return policy.eval()
+
+
+def act_with(act: ACTPolicy, ensemble: str) -> ACTPolicy:
+    """LeRobot's ACT with its queue ("none") or its temporal ensembling ("act")."""
+    config = copy.deepcopy(act.config)
+    if ensemble == "act":
+        config.temporal_ensemble_coeff, config.n_action_steps = ENSEMBLE_COEFF, 1
+    else:
+        config.temporal_ensemble_coeff = None
+    policy = ACTPolicy(config)
+    policy.load_state_dict(act.state_dict())
+    return policy.eval()
+
+
+def build_variant(name: str, vib: VIBPolicy | None, act: ACTPolicy | None, rnd: RND | None) -> PreTrainedPolicy:
+    """The policy of one Table I row from the trained networks it needs (module docstring)."""
+    if name not in VARIANTS:
+        raise ValueError(f"Unknown variant {name!r}; choose from {sorted(VARIANTS)}.")
+    v = VARIANTS[name]
+    needs = {"vib": vib, "act": act, "rnd": rnd}
+    for model in {v.chunks, *([v.score] if v.score else [])}:
+        if needs[model] is None:
+            raise ValueError(f"Variant {name!r} ({v.label}) needs the {model.upper()} network.")
+    if v.score is None:
+        return act_with(act, v.ensemble)
+    if v.chunks == "vib" and v.score == "vib":
+        return vib_with(vib, v.ensemble)
+    chunk_policy = vib_with(vib, "none") if v.chunks == "vib" else act_with(act, "none")
+    score = vib_score(vib) if v.score == "vib" else rnd_score(rnd)
+    return ScoredChunkPolicy(chunk_policy, score, v.ensemble)

@@ -1,0 +1,174 @@
+"""`lerobot-vib-benchmark` end to end at a tiny budget, its resume, its variants and RND."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import pytest
+import torch
+from lerobot.configs.default import DatasetConfig
+from lerobot.policies.act.configuration_act import ACTConfig
+from lerobot.policies.act.modeling_act import ACTPolicy
+
+from helpers import BIN, run
+from lerobot_vib.configuration_vib import VIBConfigError
+from lerobot_vib.rnd import RND, RNDConfig, train_rnd
+from lerobot_vib.scripts import benchmark
+from lerobot_vib.scripts.benchmark import BenchmarkConfig, cell_path, planned_cells, run_benchmark
+from lerobot_vib.sim.env_config import AlohaFastEnv, ArmGraspEnvConfig
+from lerobot_vib.sim.recorder import RecordingSettings, record_scripted_dataset
+from lerobot_vib.variants import ScoredChunkPolicy, act_with
+
+REPO = "local/bench_arm"
+
+
+@pytest.fixture(scope="module")
+def arm_data(tmp_path_factory) -> Path:
+    root = tmp_path_factory.mktemp("bench") / "arm"
+    settings = RecordingSettings(
+        task="grasp_block", image_height=48, image_width=64, cameras=["scene"], shadows=False, use_videos=False
+    )
+    record_scripted_dataset(root, REPO, settings, 3, progress=False)
+    return root
+
+
+def tiny_config(root: Path, out: Path, **overrides) -> BenchmarkConfig:
+    fields = dict(
+        dataset=DatasetConfig(repo_id=REPO, root=str(root)),
+        env=ArmGraspEnvConfig(dataset_root=str(root)),
+        output_dir=out,
+        variants=["vib", "act"],
+        conditions=["normal", "occlusion"],
+        n_episodes=2,
+        n_episodes_other=2,
+        calibration_episodes=2,
+        steps=2,
+        eval_batch_size=2,
+        alpha=0.5,
+    )
+    return BenchmarkConfig(**{**fields, **overrides})
+
+
+def test_tiny_benchmark_trains_evaluates_reports_and_resumes_without_repeating_a_cell(arm_data, tmp_path, monkeypatch):
+    cfg = tiny_config(arm_data, tmp_path / "bench")
+    real_run_cell, ran = benchmark.run_cell, []
+
+    def interrupted(cfg, variant, condition, *args):
+        if len(ran) == 2:
+            raise KeyboardInterrupt  # Ctrl-C during the third cell
+        ran.append((variant, condition))
+        return real_run_cell(cfg, variant, condition, *args)
+
+    monkeypatch.setattr(benchmark, "run_cell", interrupted)
+    with pytest.raises(KeyboardInterrupt):
+        run_benchmark(cfg)
+    assert all(cell_path(cfg, v, c).exists() for v, c in ran)
+    assert (cfg.output_dir / "train/vib/checkpoints/000002/pretrained_model").exists()
+
+    first_run, ran[:] = list(ran), []
+
+    def counting(cfg, variant, condition, *args):
+        ran.append((variant, condition))
+        return real_run_cell(cfg, variant, condition, *args)
+
+    def no_training(*args, **kwargs):
+        raise AssertionError("the trained checkpoints must be reused")
+
+    monkeypatch.setattr(benchmark, "run_cell", counting)
+    monkeypatch.setattr(benchmark.subprocess, "run", no_training)
+    results = run_benchmark(cfg)
+    planned = planned_cells(cfg)
+    assert sorted(ran + first_run) == sorted(planned) and not set(ran) & set(first_run)
+
+    # the same seeds for every row of a condition, u for the scored row only
+    normal = {v: json.loads(cell_path(cfg, v, "normal").read_text()) for v in ("vib", "act")}
+    assert normal["vib"]["seeds"] == normal["act"]["seeds"] == [100_000, 100_001]
+    assert normal["act"]["u"] is None and len(normal["vib"]["u"][0]) == normal["vib"]["steps"][0]
+    for v in ("vib", "act"):
+        s = results["success"][v]["normal"]
+        assert s["n"] == 2 and 0 <= s["low"] <= s["pc"] <= s["high"] <= 100
+    u = results["uncertainty"]["vib"]
+    assert set(u["auroc"]) == {"occlusion"} and 0 <= u["auroc"]["occlusion"]["frames"] <= 1
+    assert u["thresholds"]["conformal"] is not None and len(u["thresholds"]["band"]) >= 1
+    assert "occlusion_episodes" in u["stops"]["mean_2std"]
+    report = (cfg.output_dir / "report.md").read_text()
+    assert "lerobot-vib-benchmark" in report and "| VIB (Eq. 6) |" in report and "| ACT |" in report
+    assert (cfg.output_dir / "success.png").exists() and (cfg.output_dir / "traces.png").exists()
+    assert json.loads((cfg.output_dir / "results.json").read_text())["success"]["act"]["occlusion"]["n"] == 2
+
+    # a rerun with other settings refuses to mix its cells with these
+    with pytest.raises(VIBConfigError, match="other episode seeds"):
+        run_benchmark(tiny_config(arm_data, cfg.output_dir, n_episodes=3))
+    with pytest.raises(VIBConfigError, match="other steps"):
+        run_benchmark(tiny_config(arm_data, cfg.output_dir, steps=3))
+
+
+def test_the_command_line_refuses_scene_conditions_off_the_arm_and_unknown_rows(tmp_path):
+    with pytest.raises(VIBConfigError, match="simulated arm"):
+        BenchmarkConfig(
+            dataset=DatasetConfig(repo_id="x"), env=AlohaFastEnv(), output_dir=tmp_path, conditions=["occlusion"]
+        )
+    with pytest.raises(VIBConfigError, match="Unknown variants"):
+        BenchmarkConfig(dataset=DatasetConfig(repo_id="x"), env=ArmGraspEnvConfig(), variants=["diffusion"])
+    out = run([str(BIN / "lerobot-vib-benchmark"), "--help"])
+    assert "--profile" in out and "--n_episodes_other" in out
+
+
+def test_act_with_eq6_and_u_equal_to_one_is_acts_own_ensembling():
+    torch.manual_seed(0)
+    from lerobot.configs.types import FeatureType, PolicyFeature
+
+    cfg = ACTConfig(
+        device="cpu", chunk_size=5, n_action_steps=5, dim_model=32, n_heads=2, dim_feedforward=64, n_encoder_layers=1,
+        n_decoder_layers=1, pretrained_backbone_weights=None, use_vae=False,
+        input_features={"observation.state": PolicyFeature(FeatureType.STATE, (3,)),
+                        "observation.environment_state": PolicyFeature(FeatureType.ENV, (2,))},
+        output_features={"action": PolicyFeature(FeatureType.ACTION, (3,))},
+    )  # fmt: skip
+    act = ACTPolicy(cfg).eval()
+    ours = ScoredChunkPolicy(act_with(act, "none"), lambda b: (torch.ones(2), torch.ones(2)), "uncertainty")
+    lerobots = act_with(act, "act")
+    ours.reset(), lerobots.reset()
+    g = torch.Generator().manual_seed(1)
+    for _ in range(7):
+        batch = {
+            "observation.state": torch.randn(2, 3, generator=g),
+            "observation.environment_state": torch.randn(2, 2, generator=g),
+        }
+        torch.testing.assert_close(ours.select_action(batch), lerobots.select_action(batch))
+    assert ours.last_step.u.tolist() == [1.0, 1.0]
+
+
+def _images(n: int, bright: bool, seed: int) -> torch.Tensor:
+    """Dark frames with a bright square at a random place (training) or uniform noise (unseen)."""
+    g = torch.Generator().manual_seed(seed)
+    if bright:
+        return torch.rand(n, 3, 16, 16, generator=g) * 2
+    x = torch.zeros(n, 3, 16, 16)
+    for i, (r, c) in enumerate(torch.randint(0, 12, (n, 2), generator=g).tolist()):
+        x[i, :, r : r + 4, c : c + 4] = 1.0
+    return x
+
+
+def test_rnd_error_is_higher_on_unseen_images_after_training_and_survives_a_save(tmp_path):
+    cfg = RNDConfig(image_keys=["observation.images.top"], image_shape=[3, 16, 16], state_key=None, steps=150, lr=1e-3)
+    rnd = RND(cfg)
+
+    def batches():
+        for i in range(10):
+            yield {"observation.images.top": _images(16, False, seed=i), "episode_index": torch.zeros(16)}
+
+    losses = train_rnd(rnd, batches, batches())
+    assert losses[-1] < losses[0] / 2
+    seen = rnd.u({"observation.images.top": _images(64, False, seed=99)})
+    unseen = rnd.u({"observation.images.top": _images(64, True, seed=99)})
+    assert unseen.mean() > 2 * seen.mean() and rnd.threshold() > 1
+    rnd.save(tmp_path / "rnd")
+    loaded = RND.load(tmp_path / "rnd")
+    torch.testing.assert_close(
+        loaded.u({"observation.images.top": _images(4, True, 5)}),
+        rnd.u({"observation.images.top": _images(4, True, 5)}),
+    )
+    with pytest.raises(ValueError, match="shape"):
+        rnd.error({"observation.images.top": torch.zeros(1, 3, 8, 8)})
