@@ -172,3 +172,11 @@ def test_rnd_error_is_higher_on_unseen_images_after_training_and_survives_a_save
     )
     with pytest.raises(ValueError, match="shape"):
         rnd.error({"observation.images.top": torch.zeros(1, 3, 8, 8)})
+
+
+def test_a_score_without_training_statistics_is_refused_before_any_rollout():
+    from lerobot_vib.variants import rnd_score
+
+    rnd = RND(RNDConfig(image_keys=[], state_key="observation.state", state_dim=3))  # never trained: e_bar NaN
+    with pytest.raises(RuntimeError, match="no training statistics"):
+        rnd_score(rnd)

@@ -65,14 +65,23 @@ VARIANTS: dict[str, Variant] = {
 }
 
 
+def _known_mean(mean: float, problem: str) -> float:
+    # An unknown mean would make u NaN at every step: every rollout would stop without saying why.
+    if not (math.isfinite(mean) and mean > 0):
+        raise RuntimeError(f"{problem}, so its u is unknown: train it first (lerobot-train, train_rnd).")
+    return mean
+
+
 def vib_score(vib: VIBPolicy) -> Callable[[dict[str, Tensor]], tuple[Tensor, Tensor]]:
     """batch -> (rate, u = rate / R_bar) of a VIB network."""
+
+    r_bar = _known_mean(vib.rate_mean(), "This VIB network has no rate statistics (R_bar)")
 
     @torch.no_grad()
     def score(batch: dict[str, Tensor]) -> tuple[Tensor, Tensor]:
         vib.eval()
         rate = vib.model.bottleneck.rate(vib.model.encode(batch))
-        return rate, rate / vib.rate_mean()
+        return rate, rate / r_bar
 
     return score
 
@@ -80,10 +89,12 @@ def vib_score(vib: VIBPolicy) -> Callable[[dict[str, Tensor]], tuple[Tensor, Ten
 def rnd_score(rnd: RND) -> Callable[[dict[str, Tensor]], tuple[Tensor, Tensor]]:
     """batch -> (e, u_RND = e / e_bar)."""
 
+    e_bar = _known_mean(float(rnd.error_mean), "This RND has no training statistics (e_bar)")
+
     @torch.no_grad()
     def score(batch: dict[str, Tensor]) -> tuple[Tensor, Tensor]:
         error = rnd.error(batch)
-        return error, error / float(rnd.error_mean)
+        return error, error / e_bar
 
     return score
 
