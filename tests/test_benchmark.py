@@ -14,7 +14,7 @@ from lerobot.policies.act.modeling_act import ACTPolicy
 from helpers import BIN, run
 from lerobot_vib.configuration_vib import VIBConfigError
 from lerobot_vib.rnd import RND, RNDConfig, train_rnd
-from lerobot_vib.scripts import benchmark
+from lerobot_vib.scripts import benchmark, benchmark_report
 from lerobot_vib.scripts.benchmark import BenchmarkConfig, cell_path, planned_cells, run_benchmark
 from lerobot_vib.sim.env_config import AlohaFastEnv, ArmGraspEnvConfig
 from lerobot_vib.sim.recorder import RecordingSettings, record_scripted_dataset
@@ -113,6 +113,40 @@ def test_the_command_line_refuses_scene_conditions_off_the_arm_and_unknown_rows(
         BenchmarkConfig(dataset=DatasetConfig(repo_id="x"), env=ArmGraspEnvConfig(), variants=["diffusion"])
     out = run([str(BIN / "lerobot-vib-benchmark"), "--help"])
     assert "--profile" in out and "--n_episodes_other" in out
+
+
+def test_each_env_gets_its_own_cpu_preset_and_a_profile_without_one_is_refused(tmp_path):
+    arm = BenchmarkConfig(dataset=DatasetConfig(repo_id="x"), env=ArmGraspEnvConfig(), output_dir=tmp_path)
+    aloha = BenchmarkConfig(dataset=DatasetConfig(repo_id="x"), env=AlohaFastEnv(), output_dir=tmp_path)
+    insertion = BenchmarkConfig(
+        dataset=DatasetConfig(repo_id="x"), env=AlohaFastEnv(task="AlohaInsertion-v0"), profile="gpu"
+    )
+    assert (arm.preset.name, aloha.preset.name, insertion.preset.name) == (
+        "vib_arm_sim.json",
+        "vib_cpu.json",
+        "vib_aloha_insertion.json",
+    )
+    assert aloha.steps == json.loads(aloha.preset.read_text())["steps"]
+    with pytest.raises(VIBConfigError, match="no preset for"):
+        BenchmarkConfig(dataset=DatasetConfig(repo_id="x"), env=benchmark.envs.PushtEnv(), output_dir=tmp_path)
+
+
+def test_the_learning_curve_is_read_exactly_from_lerobot_trains_log_including_a_resumed_run():
+    def line(step: int, shown: str, l1: float, rate: str = "") -> str:
+        bar = f"Training:  50%|#####     | {step}/3000 [01:04<37:25,  1.74step/s]"
+        return f"{bar}\rINFO 2026-11-22 21:30:05 ot_train.py:641 step:{shown} smpl:2K loss:{l1} l1_loss:{l1}{rate}\n"
+
+    log = (
+        line(100, "100", 0.65, " rate:1.5")
+        + line(1000, "1K", 0.2, " rate:9.0")
+        + "Training:  1%| | 1049/3000 [00:01<00:01]\r"
+        + line(1100, "1K", 0.19, " rate:9.5")  # the bar was redrawn at 1100 before the line: kept
+        + line(1150, "2K", 0.5)  # a bar count that contradicts the line's step: dropped, not guessed
+        + line(1100, "1K", 0.18, " rate:9.4")  # resumed from step 1000: the later value wins
+    )
+    curve = benchmark_report.training_curve(log)
+    assert [(p["step"], p["l1"], p["rate"]) for p in curve] == [(100, 0.65, 1.5), (1000, 0.2, 9.0), (1100, 0.18, 9.4)]
+    assert benchmark_report.training_curve("no loss lines") == []
 
 
 def test_act_with_eq6_and_u_equal_to_one_is_acts_own_ensembling():

@@ -277,3 +277,70 @@ def test_calibrate_never_writes_into_a_folder_it_did_not_make(tiny_checkpoint, t
     )
     assert proc.returncode != 0 and "is not a calibrated checkpoint" in proc.stderr, proc.stderr[-2000:]
     assert sorted(p.name for p in target.iterdir()) == ["notes.txt"]
+
+
+def _rollouts(u_max: list[float], rate_mean: float, safety: bool = False) -> dict:
+    """An uncertainty_info.json as lerobot-vib-eval writes it (the fields calibration reads)."""
+    return {
+        "rate_mean": rate_mean,
+        "safety_enabled": safety,
+        "per_episode": [{"seed": 100 + i, "u_max": u} for i, u in enumerate(u_max)],
+    }
+
+
+def test_gamma_from_clean_rollouts_is_the_conformal_threshold_on_their_episode_maxima():
+    from lerobot_vib.configuration_vib import CalibrationConfig
+    from lerobot_vib.scripts.calibrate import gamma_from_rollouts
+
+    dataset_calibration = CalibrationConfig(rate_mean=2.0, rate_std=0.5, gamma=1.5, gamma_method="mean_plus_2std")
+    u_max = [3.0, 1.2, 2.2, 5.0, 1.9, 2.5, 1.1, 4.0, 2.8, 1.7]
+    got = gamma_from_rollouts(dataset_calibration, _rollouts(u_max, 2.0), alpha=0.1, source="r.json")
+    assert got.gamma == conformal_gamma(torch.tensor(u_max), 0.1) == 5.0  # ceil(11 * 0.9) = 10th of 10
+    assert (got.gamma_method, got.conformal_alpha, got.rollout_seeds[:2]) == ("conformal_rollouts", 0.1, [100, 101])
+    assert got.rate_mean == 2.0 and got.episodes_above_gamma == 0.0  # R_bar stays the dataset's
+    assert dataset_calibration.gamma == 1.5  # a new record, not an edit
+
+
+@pytest.mark.parametrize(
+    ("rollouts", "calibrated", "message"),
+    [
+        (_rollouts([1.0] * 10, 2.0, safety=True), True, "safety stop on"),
+        (_rollouts([1.0] * 10, 3.0), True, "R_bar=3.0, this checkpoint has R_bar=2"),
+        (_rollouts([1.0] * 5, 2.0), True, "needs at least 9 rollouts"),
+        (_rollouts([1.0] * 10, 2.0), False, "no R_bar: calibrate it on its dataset first"),
+    ],
+)
+def test_gamma_from_rollouts_refuses_rollouts_that_are_not_clean_or_not_of_this_checkpoint(
+    rollouts, calibrated, message
+):
+    from lerobot_vib.configuration_vib import CalibrationConfig, VIBConfigError
+    from lerobot_vib.scripts.calibrate import gamma_from_rollouts
+
+    calibration = CalibrationConfig(rate_mean=2.0, rate_std=0.5) if calibrated else CalibrationConfig()
+    with pytest.raises(VIBConfigError, match=message):
+        gamma_from_rollouts(calibration, rollouts, alpha=0.1, source="r.json")
+
+
+def test_calibrate_command_sets_gamma_from_rollouts_in_both_configs(tiny_checkpoint, tiny_dataset_root, tmp_path):
+    import shutil
+
+    ckpt = tmp_path / "pretrained_model"
+    shutil.copytree(tiny_checkpoint, ckpt)
+    _calibrate(ckpt, tiny_dataset_root, "--in_place=true")
+    r_bar = json.loads((ckpt / "config.json").read_text())["calibration"]["rate_mean"]
+    info = tmp_path / "uncertainty_info.json"
+    info.write_text(json.dumps(_rollouts([float(i) for i in range(1, 11)], r_bar)))
+    log = run(
+        [
+            str(BIN / "lerobot-vib-calibrate"),
+            f"--policy.path={ckpt}",
+            f"--rollouts={info}",
+            "--conformal_alpha=0.1",
+            "--in_place=true",
+        ]
+    )
+    assert "gamma=10.0000" in log
+    config = json.loads((ckpt / "config.json").read_text())["calibration"]
+    assert (config["gamma"], config["gamma_method"], config["rate_mean"]) == (10.0, "conformal_rollouts", r_bar)
+    assert json.loads((ckpt / "train_config.json").read_text())["policy"]["calibration"] == config
+    assert VIBPolicy.from_pretrained(ckpt).stop_threshold() == 10.0

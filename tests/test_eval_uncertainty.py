@@ -35,6 +35,7 @@ def test_an_env_that_finishes_early_is_not_counted_while_it_waits():
     assert (first["seed"], second["seed"]) == (5, 6)
     assert info["successes"]["n_episodes"] == 1 and info["failures"]["u_max_mean"] == 3.0
     assert info["overall"]["pc_success"] == 50.0 and info["overall"]["stopped_step_fraction"] == 2 / 5
+    assert info["rate_mean"] == pytest.approx(10.0)  # u = rate / R_bar: what `--rollouts` calibration checks
 
 
 def test_only_the_episodes_lerobot_keeps_are_reported():

@@ -91,12 +91,14 @@ class CalibrationConfig:
         rate_std: Standard deviation of the rate over those frames.
         rate_quantiles: Quantiles of the rate, keyed by level ("0.5", "0.9", ...).
         gamma: The calibrated stop threshold on u.
-        gamma_method: "mean_plus_2std" (paper) or "conformal".
+        gamma_method: "mean_plus_2std" (paper), "conformal" (held-out dataset episodes) or "conformal_rollouts"
+            (clean rollouts of the policy, `lerobot-vib-calibrate --rollouts`).
         conformal_alpha: Target per-episode false-stop rate of the conformal threshold.
         conformal_episodes: The held-out episodes the conformal threshold was computed on.
-        frames_above_gamma: Fraction of the calibration frames with u > gamma.
-        episodes_above_gamma: Fraction of the calibration episodes with u > gamma at some frame: the
-            in-sample rate of episodes the threshold stop would interrupt.
+        rollout_seeds: The env seeds of the rollouts a "conformal_rollouts" gamma was computed on.
+        frames_above_gamma: Fraction of the calibration frames with u > gamma (None for a gamma from rollouts).
+        episodes_above_gamma: Fraction of the calibration episodes (or rollouts) with u > gamma at some frame:
+            the in-sample rate of episodes the threshold stop would interrupt.
     """
 
     dataset_repo_id: str | None = None
@@ -109,6 +111,7 @@ class CalibrationConfig:
     gamma_method: str | None = None
     conformal_alpha: float | None = None
     conformal_episodes: list[int] | None = None
+    rollout_seeds: list[int] | None = None
     frames_above_gamma: float | None = None
     episodes_above_gamma: float | None = None
 

@@ -87,9 +87,10 @@ MAIN_VARIANTS = ("vib", "act")  # the rows that get `n_episodes`; the others get
 
 @dataclass(frozen=True)
 class Profile:
-    """A budget. `preset` is the VIB train config (in configs/policy/); `steps` None keeps the preset's."""
+    """A budget. `presets`: the VIB train config (in configs/policy/) per env type; `steps` None keeps the
+    preset's."""
 
-    preset: str
+    presets: dict[str, str]
     steps: int | None
     n_episodes: int
     n_episodes_other: int
@@ -98,13 +99,19 @@ class Profile:
     device: str
 
 
+_GPU_PRESETS = {
+    "vib_arm": "vib_arm_sim.json",
+    "aloha_fast": "vib_aloha_transfer_cube.json",
+    "aloha_fast/AlohaInsertion-v0": "vib_aloha_insertion.json",
+}
 PROFILES = {
     # This 2-core CPU, the simulated arm: about two hours (arm_learning_cpu_2core.md: 44 min per 4000 steps).
-    "cpu-small": Profile("vib_arm_sim.json", None, 50, 20, 20, 2000, "cpu"),
+    # On ALOHA (aloha_fast) the CPU recipe: 120x160, chunk 50, trunk from scratch.
+    "cpu-small": Profile({"vib_arm": "vib_arm_sim.json", "aloha_fast": "vib_cpu.json"}, None, 50, 20, 20, 2000, "cpu"),
     # A lent H100 within 25 minutes of device time: the ALOHA preset shortened.
-    "gpu": Profile("vib_aloha_transfer_cube.json", 20000, 50, 20, 20, 5000, "cuda"),
+    "gpu": Profile(_GPU_PRESETS, 20000, 50, 20, 20, 5000, "cuda"),
     # The paper's settings: 480x640, its training length, 100 episodes per cell.
-    "paper": Profile("vib_aloha_transfer_cube.json", None, 100, 100, 40, 20000, "cuda"),
+    "paper": Profile(_GPU_PRESETS, None, 100, 100, 40, 20000, "cuda"),
 }
 
 
@@ -122,6 +129,7 @@ class BenchmarkConfig:
     calibration_episodes: Clean rollouts per scored row on their own seeds, for the thresholds.
     preset: The VIB train config (`lerobot-train --config_path`); ACT copies its architecture and recipe.
     steps: Training steps of VIB and ACT.
+    save_freq: Steps between saved training checkpoints: an interrupted training resumes from the last one.
     rnd_steps: Training steps of the RND predictor.
     vib_checkpoint, act_checkpoint: Trained `pretrained_model` folders to evaluate instead of training.
     device: Where training and evaluation run.
@@ -141,6 +149,7 @@ class BenchmarkConfig:
     calibration_episodes: int | None = None
     preset: Path | None = None
     steps: int | None = None
+    save_freq: int = 1000
     rnd_steps: int | None = None
     vib_checkpoint: Path | None = None
     act_checkpoint: Path | None = None
@@ -159,7 +168,13 @@ class BenchmarkConfig:
             if getattr(self, name) is None:
                 setattr(self, name, getattr(p, name))
         if self.preset is None:
-            self.preset = CONFIGS / p.preset
+            env_type, task = getattr(self.env, "type", None), getattr(self.env, "task", None)
+            name = p.presets.get(f"{env_type}/{task}", p.presets.get(env_type))
+            if name is None:
+                raise VIBConfigError(
+                    f"--profile={self.profile} has no preset for --env.type={env_type}: give --preset=<train config>."
+                )
+            self.preset = CONFIGS / name
         if unknown := sorted(set(self.variants) - set(VARIANTS)):
             raise VIBConfigError(f"Unknown variants {unknown}; choose from {sorted(VARIANTS)}.")
         scene = getattr(self.env, "type", None) == "vib_arm"
@@ -206,7 +221,7 @@ def train_command(network: str, cfg: BenchmarkConfig, out: Path) -> list[str]:
         f"--output_dir={out}",
         f"--seed={cfg.seed}",
         f"--steps={cfg.steps}",
-        f"--save_freq={cfg.steps}",
+        f"--save_freq={min(cfg.save_freq, cfg.steps)}",
         "--env_eval_freq=0",
         f"--policy.device={cfg.device}",
     ]

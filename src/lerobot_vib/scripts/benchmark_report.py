@@ -9,6 +9,7 @@ from __future__ import annotations
 import json
 import logging
 import platform
+import re
 from pathlib import Path
 from typing import Any
 
@@ -91,6 +92,41 @@ def uncertainty(cells: dict, variant: str, conditions: list[str], train_gamma: f
     return result
 
 
+# LeRobot's training log: its progress bar (exact step) then the loss line, whose `step:` is rounded ("1K").
+_LOSS_LINE = re.compile(
+    r"(\d+)/\d+ \[[^\]\n]*\]\s*INFO[^\n]*? step:(\S+) [^\n]*?\bl1_loss:([-+.\de]+)(?:[^\n]*?\brate:([-+.\de]+))?"
+)
+
+
+def training_curve(log_text: str) -> list[dict]:
+    """(step, L1, rate) of every loss line in a `lerobot-train` log, sorted by step.
+
+    A resumed training appends to the log and repeats the steps after its checkpoint: the later value wins. A
+    progress-bar count that disagrees with the line's own rounded step (the bar not yet redrawn) is dropped
+    rather than guessed.
+    """
+    from lerobot.utils.utils import format_big_number
+
+    points: dict[int, dict] = {}
+    for m in _LOSS_LINE.finditer(log_text):
+        step = int(m.group(1))
+        if format_big_number(step) != m.group(2):
+            continue
+        points[step] = {
+            "step": step,
+            "l1": float(m.group(3)),
+            "rate": None if m.group(4) is None else float(m.group(4)),
+        }
+    return [points[k] for k in sorted(points)]
+
+
+def training_curves(out: Path) -> dict[str, list[dict]]:
+    """The loss curves of the networks this benchmark trained (none for given checkpoints)."""
+    logs = {net: out / "train" / f"{net}.log" for net in ("vib", "act")}
+    curves = {net: training_curve(log.read_text(errors="replace")) for net, log in logs.items() if log.exists()}
+    return {net: curve for net, curve in curves.items() if curve}
+
+
 def _pct(k: int, n: int) -> str:
     return f"{k}/{n} ({100 * k / n:.0f}%)" if n else "-"
 
@@ -112,6 +148,7 @@ def write_report(cfg, cells: dict, wall_s: float) -> dict:
         "scores": scores,
         "success": {v: {c: success_cell(cells[(v, c)]) for c in cfg.conditions} for v in cfg.variants},
         "uncertainty": {},
+        "training": training_curves(out),
     }
     for v in cfg.variants:
         score = VARIANTS[v].score
@@ -147,6 +184,20 @@ def _markdown(cfg, results: dict, plots: list[str]) -> str:
         cells = [results["success"][v][cond] for cond in cfg.conditions]
         row = [f"{s['k']}/{s['n']} = {s['pc']:.0f}% [{s['low']:.0f}-{s['high']:.0f}]" for s in cells]
         lines.append(f"| {VARIANTS[v].label} | " + " | ".join(row) + " |")
+    if results["training"]:
+        lines += [
+            "",
+            "## Training (L1 of the normalized action chunk, training mode, from the `lerobot-train` logs)",
+            "",
+            "| network | logged steps | L1 first | L1 at half | L1 last | rate last |",
+            "| --- | --- | --- | --- | --- | --- |",
+        ]
+        for net, curve in results["training"].items():
+            first, half, last = curve[0], curve[len(curve) // 2], curve[-1]
+            lines.append(
+                f"| {net.upper()} | {first['step']}-{last['step']} | {first['l1']:.3f} (step {first['step']}) | "
+                f"{half['l1']:.3f} (step {half['step']}) | {last['l1']:.3f} | {_num(last['rate'])} |"
+            )
     if results["uncertainty"]:
         perturbed = [cond for cond in cfg.conditions if cond != "normal"]
         lines += [
@@ -228,6 +279,20 @@ def _plots(cfg, cells: dict, results: dict, out: Path) -> list[str]:
     fig.savefig(out / "success.png", dpi=120)
     plt.close(fig)
     written.append("success.png")
+
+    if results["training"]:
+        fig, ax = plt.subplots(figsize=(6, 3.5))
+        for net, curve in results["training"].items():
+            ax.plot([p["step"] for p in curve], [p["l1"] for p in curve], label=net.upper())
+        ax.set_xlabel("training step")
+        ax.set_ylabel("L1 (normalized actions, log scale)")
+        ax.set_yscale("log")
+        ax.set_title("Learning curves", fontsize=9)
+        ax.legend(fontsize=8)
+        fig.tight_layout()
+        fig.savefig(out / "learning_curve.png", dpi=120)
+        plt.close(fig)
+        written.append("learning_curve.png")
 
     scored = [v for v in results["uncertainty"] if (v, "normal") in cells]
     perturbed = [c for c in cfg.conditions if c != "normal"]

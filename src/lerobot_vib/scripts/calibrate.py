@@ -11,17 +11,30 @@ them. gamma is the paper's mean(u) + 2 std(u), or with `--conformal_alpha` the s
 held-out `--conformal_episodes` (see `lerobot_vib.calibration`). The calibrated checkpoint is written to
 `<checkpoint>_calibrated` (or `--output_dir`); `--in_place=true` updates the checkpoint itself, `config.json`
 and `train_config.json` alike.
+
+gamma from rollouts. u is highest in an episode's first steps, training episodes included, and a policy's
+own rollouts drift from its data, so a threshold set on dataset frames can stop every rollout at step 1. The
+benchmark judges thresholds on clean rollouts; the same is one command here: evaluate the calibrated
+checkpoint with the stop off (`lerobot-vib-eval`), then
+
+    lerobot-vib-calibrate --policy.path=<calibrated checkpoint> --in_place=true \
+        --rollouts=<eval output_dir>/uncertainty_info.json --conformal_alpha=0.1
+
+sets gamma to the split-conformal threshold on the rollouts' per-episode max u: a new clean rollout exceeds it
+with probability at most alpha. R_bar and the rate statistics stay those of the dataset.
 """
 
 import json
 import logging
+import math
 import os
 import shutil
 import sys
-from dataclasses import asdict, dataclass
+from dataclasses import asdict, dataclass, replace
 from pathlib import Path
 
 import huggingface_hub
+import numpy as np
 import torch
 from lerobot.configs import parser
 from lerobot.configs.policies import PreTrainedConfig
@@ -61,11 +74,13 @@ class CalibrationDataset:
 @dataclass
 class CalibrateConfig:
     """Args:
-    dataset: The dataset to compute the rate statistics on.
+    dataset: The dataset to compute the rate statistics on (not with `rollouts`).
     policy: Set with `--policy.path=<checkpoint dir or Hub id>`.
     episodes: Episodes for R_bar and the statistics (default: all).
     conformal_alpha: Target per-episode false-stop rate; sets gamma by split conformal prediction.
     conformal_episodes: Held-out in-distribution episodes for the conformal threshold (not in `episodes`).
+    rollouts: `uncertainty_info.json` of clean rollouts of this calibrated checkpoint (`lerobot-vib-eval`, stop
+        off): gamma becomes the conformal threshold at `conformal_alpha` on their per-episode max u.
     batch_size: Frames per forward pass.
     num_workers: DataLoader workers.
     output_dir: Where to write the calibrated checkpoint (default: `<checkpoint>_calibrated` beside a local
@@ -74,11 +89,12 @@ class CalibrateConfig:
         `lerobot-train --resume=true` keeps it) instead of a new folder.
     """
 
-    dataset: CalibrationDataset
+    dataset: CalibrationDataset | None = None
     policy: PreTrainedConfig | None = None
     episodes: list[int] | None = None
     conformal_alpha: float | None = None
     conformal_episodes: list[int] | None = None
+    rollouts: Path | None = None
     batch_size: int = 32
     num_workers: int = 0
     output_dir: Path | None = None
@@ -86,13 +102,25 @@ class CalibrateConfig:
 
     def __post_init__(self):
         # Arguments first: nothing below may cost minutes before a typo is reported.
-        if (self.conformal_alpha is None) != (self.conformal_episodes is None):
+        if self.rollouts is not None:
+            if self.dataset is not None or self.episodes is not None or self.conformal_episodes is not None:
+                raise VIBConfigError(
+                    "`--rollouts` sets gamma from rollouts of an already calibrated checkpoint: drop `--dataset.*`, "
+                    "`--episodes` and `--conformal_episodes`."
+                )
+            if self.conformal_alpha is None:
+                raise VIBConfigError("`--rollouts` needs `--conformal_alpha` (the false-stop rate to allow).")
+            if not Path(self.rollouts).is_file():
+                raise VIBConfigError(f"No rollouts file at {self.rollouts} (lerobot-vib-eval's uncertainty_info.json).")
+        elif self.dataset is None:
+            raise VIBConfigError("Give the dataset (`--dataset.repo_id=...`), or `--rollouts=` to set gamma only.")
+        elif (self.conformal_alpha is None) != (self.conformal_episodes is None):
             raise VIBConfigError("`--conformal_alpha` and `--conformal_episodes` (held-out episodes) go together.")
         if self.conformal_alpha is not None:
             if not 0 < self.conformal_alpha < 1:
                 raise VIBConfigError(f"`--conformal_alpha` must be in (0, 1), got {self.conformal_alpha}.")
             needed = conformal_min_scores(self.conformal_alpha)
-            if len(set(self.conformal_episodes)) < needed:
+            if self.conformal_episodes is not None and len(set(self.conformal_episodes)) < needed:
                 raise VIBConfigError(
                     f"A conformal threshold at alpha={self.conformal_alpha} needs at least {needed} held-out "
                     f"episodes; `--conformal_episodes` has {len(set(self.conformal_episodes))}."
@@ -243,6 +271,43 @@ def calibrate(
     return calibration
 
 
+def gamma_from_rollouts(calibration: CalibrationConfig, info: dict, alpha: float, source: str) -> CalibrationConfig:
+    """`calibration` with gamma = the split-conformal threshold on clean rollouts' per-episode max u."""
+    if calibration.rate_mean is None:
+        raise VIBConfigError(
+            "The checkpoint has no R_bar: calibrate it on its dataset first, evaluate that checkpoint, then use "
+            "`--rollouts`."
+        )
+    if info.get("safety_enabled"):
+        raise VIBConfigError(
+            f"{source} was evaluated with the safety stop on, so its episodes are not clean rollouts: evaluate "
+            "with `--policy.safety.enabled=false`."
+        )
+    rate_mean = info.get("rate_mean")
+    if rate_mean is None or not math.isclose(rate_mean, calibration.rate_mean, rel_tol=1e-4):
+        raise VIBConfigError(
+            f"{source} holds u normalized by R_bar={rate_mean}, this checkpoint has R_bar={calibration.rate_mean:.6g}: "
+            "evaluate this checkpoint (the calibrated one) and calibrate on those rollouts."
+        )
+    scores = [ep["u_max"] for ep in info["per_episode"] if ep["u_max"] is not None]
+    needed = conformal_min_scores(alpha)
+    if len(scores) < needed:
+        raise VIBConfigError(
+            f"A conformal threshold at alpha={alpha} needs at least {needed} rollouts; {source} has {len(scores)}."
+        )
+    gamma = conformal_gamma(np.asarray(scores), alpha)
+    return replace(
+        calibration,
+        gamma=gamma,
+        gamma_method="conformal_rollouts",
+        conformal_alpha=alpha,
+        conformal_episodes=None,
+        rollout_seeds=[ep["seed"] for ep in info["per_episode"] if ep.get("seed") is not None],
+        frames_above_gamma=None,
+        episodes_above_gamma=float(np.mean([s > gamma for s in scores])),
+    )
+
+
 @parser.wrap()
 def calibrate_main(cfg: CalibrateConfig) -> CalibrationConfig:
     if cfg.policy is None:
@@ -252,6 +317,8 @@ def calibrate_main(cfg: CalibrateConfig) -> CalibrationConfig:
             f"lerobot-vib-calibrate calibrates VIB policies; {cfg.policy.pretrained_path} is a "
             f"{cfg.policy.type!r} policy."
         )
+    if cfg.rollouts is not None:
+        return _calibrate_on_rollouts(cfg)
     meta = LeRobotDatasetMetadata(cfg.dataset.repo_id, root=cfg.dataset.root, revision=cfg.dataset.revision)
     check_episodes(meta.total_episodes, episodes=cfg.episodes, conformal_episodes=cfg.conformal_episodes)
     source = Path(cfg.policy.pretrained_path)
@@ -271,16 +338,7 @@ def calibrate_main(cfg: CalibrateConfig) -> CalibrationConfig:
         revision=cfg.dataset.revision,
         video_backend=cfg.dataset.video_backend,
     )
-    policy.config.calibration = calibration
-    if output_dir != source:
-        if source.is_dir():
-            shutil.copytree(source, output_dir, dirs_exist_ok=True)
-        else:  # a Hub checkpoint: the processors come along with the policy files
-            preprocessor.save_pretrained(output_dir)
-            _, postprocessor = make_pre_post_processors(policy.config, pretrained_path=str(source))
-            postprocessor.save_pretrained(output_dir)
-    policy.save_pretrained(output_dir)
-    _update_train_config(output_dir, policy.config)
+    _write(policy, preprocessor, calibration, source, output_dir)
     quantiles = ", ".join(f"q{k}={v:.4g}" for k, v in calibration.rate_quantiles.items())
     print(
         f"Calibrated {output_dir} on {calibration.n_frames} frames of {len(calibration.episodes)} episodes of "
@@ -291,6 +349,36 @@ def calibrate_main(cfg: CalibrateConfig) -> CalibrationConfig:
         f"{100 * calibration.episodes_above_gamma:.0f}% of episodes (a stop would interrupt them)"
     )
     return calibration
+
+
+def _calibrate_on_rollouts(cfg: CalibrateConfig) -> CalibrationConfig:
+    source = Path(cfg.policy.pretrained_path)
+    output_dir = _output_dir(source, cfg.output_dir, cfg.in_place)
+    info = json.loads(Path(cfg.rollouts).read_text())
+    calibration = gamma_from_rollouts(cfg.policy.calibration, info, cfg.conformal_alpha, str(cfg.rollouts))
+    policy = VIBPolicy.from_pretrained(source, config=cfg.policy)
+    preprocessor, _ = make_pre_post_processors(policy.config, pretrained_path=str(source))
+    _write(policy, preprocessor, calibration, source, output_dir)
+    print(
+        f"Calibrated {output_dir}: gamma={calibration.gamma:.4f} (split conformal at alpha={cfg.conformal_alpha} on "
+        f"the max u of {len(info['per_episode'])} rollouts in {cfg.rollouts}; "
+        f"{100 * calibration.episodes_above_gamma:.0f}% of them exceed it). R_bar={calibration.rate_mean:.6g} "
+        "is unchanged."
+    )
+    return calibration
+
+
+def _write(policy: VIBPolicy, preprocessor, calibration: CalibrationConfig, source: Path, output_dir: Path) -> None:
+    policy.config.calibration = calibration
+    if output_dir != source:
+        if source.is_dir():
+            shutil.copytree(source, output_dir, dirs_exist_ok=True)
+        else:  # a Hub checkpoint: the processors come along with the policy files
+            preprocessor.save_pretrained(output_dir)
+            _, postprocessor = make_pre_post_processors(policy.config, pretrained_path=str(source))
+            postprocessor.save_pretrained(output_dir)
+    policy.save_pretrained(output_dir)
+    _update_train_config(output_dir, policy.config)
 
 
 def main() -> None:

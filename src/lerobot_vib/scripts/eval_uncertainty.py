@@ -8,7 +8,8 @@ and `eval_info.json`). Beside `eval_info.json` it writes
 
   uncertainty_info.json  per episode, in eval_info's order: seed, success, max reward, steps, mean and max u,
                          the steps at which the safety stop fired and how many steps it held; then the same
-                         summed up over all episodes, and over successes and failures apart
+                         summed up over all episodes, and over successes and failures apart; and R_bar,
+                         the mean rate u was normalized by (`lerobot-vib-calibrate --rollouts` checks it)
   uncertainty_trace.csv  one row per step of every episode: episode, seed, step, rate, u, stopped, just_stopped
 
 Every `select_action` of a VIB policy leaves the step's rate, u and stop decision per env in
@@ -152,6 +153,7 @@ def summarize(episodes: list[dict[str, Any]], eval_info: dict) -> dict:
         }
 
     return {
+        "rate_mean": _rate_mean(episodes),
         "gamma": episodes[0]["gamma"] if episodes and math.isfinite(episodes[0]["gamma"]) else None,
         "safety_enabled": bool(episodes[0]["safety"]) if episodes else None,
         "overall": {
@@ -162,6 +164,14 @@ def summarize(episodes: list[dict[str, Any]], eval_info: dict) -> dict:
         "failures": aggregate([r for r in per_episode if not r["success"]]),
         "per_episode": per_episode,
     }
+
+
+def _rate_mean(episodes: list[dict[str, Any]]) -> float | None:
+    """R_bar the rollouts' u was normalized by (u = R / R_bar): calibrating on these u needs the same R_bar."""
+    rate = np.concatenate([ep["rate"] for ep in episodes]) if episodes else np.zeros(0)
+    u = np.concatenate([ep["u"] for ep in episodes]) if episodes else np.zeros(0)
+    ok = np.isfinite(rate) & np.isfinite(u) & (u > 0)
+    return float(np.median(rate[ok] / u[ok])) if ok.any() else None
 
 
 def _mean(values) -> float | None:
