@@ -307,6 +307,8 @@ def test_gamma_from_clean_rollouts_is_the_conformal_threshold_on_their_episode_m
         (_rollouts([1.0] * 10, 2.0, safety=True), True, "safety stop on"),
         (_rollouts([1.0] * 10, 3.0), True, "R_bar=3.0, this checkpoint has R_bar=2"),
         (_rollouts([1.0] * 5, 2.0), True, "needs at least 9 rollouts"),
+        (_rollouts([1.0] * 9 + [float("nan")], 2.0), True, r"without a finite max u \(seeds \[109\]\)"),
+        (_rollouts([None] + [1.0] * 10, 2.0), True, r"without a finite max u \(seeds \[100\]\)"),
         (_rollouts([1.0] * 10, 2.0), False, "no R_bar: calibrate it on its dataset first"),
     ],
 )

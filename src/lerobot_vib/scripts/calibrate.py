@@ -289,7 +289,13 @@ def gamma_from_rollouts(calibration: CalibrationConfig, info: dict, alpha: float
             f"{source} holds u normalized by R_bar={rate_mean}, this checkpoint has R_bar={calibration.rate_mean:.6g}: "
             "evaluate this checkpoint (the calibrated one) and calibrate on those rollouts."
         )
-    scores = [ep["u_max"] for ep in info["per_episode"] if ep["u_max"] is not None]
+    unknown = [ep.get("seed") for ep in info["per_episode"] if ep["u_max"] is None or not math.isfinite(ep["u_max"])]
+    if unknown:
+        # Dropping them would set gamma on the rollouts that went well; a clean rollout with no finite u is a bug.
+        raise VIBConfigError(
+            f"{source} has rollouts without a finite max u (seeds {unknown}): fix them, then calibrate."
+        )
+    scores = [ep["u_max"] for ep in info["per_episode"]]
     needed = conformal_min_scores(alpha)
     if len(scores) < needed:
         raise VIBConfigError(
