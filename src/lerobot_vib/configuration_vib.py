@@ -159,7 +159,7 @@ class VIBConfig(PreTrainedConfig):
             pretrained weights, else the best measured from scratch (`SCRATCH_BACKBONE_NORM`). The resolved
             value is saved with the checkpoint, so loading builds the same layers.
         replace_final_stride_with_dilation: Replace the ResNet's final stride with a dilation (ACT's option);
-            doubles the feature map size.
+            doubles the feature map size. Only ResNets of bottleneck blocks (resnet50 and up) can dilate.
         image_pooling: How a camera's ResNet feature map becomes a feature vector.
             "spatial_softmax" (default): expected image coordinates of `spatial_softmax_num_keypoints`
             learned keypoints (LeRobot's Diffusion Policy layer), which keeps *where* things are;
@@ -257,6 +257,12 @@ class VIBConfig(PreTrainedConfig):
         super().__post_init__()
         if not self.vision_backbone.startswith("resnet"):
             raise VIBConfigError(f"`vision_backbone` must be a torchvision ResNet, got {self.vision_backbone!r}.")
+        if self.replace_final_stride_with_dilation and self.vision_backbone in ("resnet18", "resnet34"):
+            # torchvision's BasicBlock has no dilation; it would fail later with a bare NotImplementedError.
+            raise VIBConfigError(
+                f"`replace_final_stride_with_dilation=true` needs a ResNet of bottleneck blocks (resnet50 and "
+                f"larger); {self.vision_backbone} has none. Set it to false, or change `vision_backbone`."
+            )
         if self.backbone_norm is None:
             self.backbone_norm = "frozen_bn" if self.pretrained_backbone_weights else SCRATCH_BACKBONE_NORM
         if self.backbone_norm not in BACKBONE_NORMS:
