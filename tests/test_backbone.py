@@ -47,7 +47,7 @@ def test_group_norm_refuses_batch_norm_weights():
 
 
 def test_dilation_is_refused_for_basic_block_resnets():
-    with pytest.raises(VIBConfigError, match="replace_final_stride_with_dilation.*resnet18"):
+    with pytest.raises(VIBConfigError, match=r"replace_final_stride_with_dilation.*resnet18"):
         make_config(replace_final_stride_with_dilation=True)
     trunk, _ = build_resnet_trunk("resnet50", None, "group_norm", dilate_last_stage=True)
     assert trunk(torch.rand(1, 3, 64, 64))["feature_map"].shape[-2:] == (4, 4)  # stride 16, not 32
