@@ -1,7 +1,7 @@
 """VIB and ACT on the simulated arm with one budget: success over training, through LeRobot's own commands.
 
 Each variant is trained by `lerobot-train` (VIB from the preset, ACT with the same architecture, recipe and
-budget: `backbone_norm.ACT_FROM_VIB`), saving a checkpoint every `save_freq` steps. Every checkpoint is then
+budget: `benchmark.act_recipe_flags`), saving a checkpoint every `save_freq` steps. Every checkpoint is then
 evaluated by `lerobot-eval` on `--env.type=vib_arm` with the recording's settings, on the same episode seeds;
 the final VIB checkpoint also with black images (a policy that ignores vision would not notice). Wall time of
 a checkpoint: its file time minus the first timestamp of its training log. Everything is saved as it
@@ -27,7 +27,7 @@ import torch
 from report import cpu_name, emit
 
 from lerobot_vib.metrics import wilson_interval
-from lerobot_vib.scripts.benchmark import ACT_FROM_VIB
+from lerobot_vib.scripts.benchmark import act_recipe_flags
 
 ROOT = Path(__file__).resolve().parents[1]
 BIN = Path(sys.executable).parent
@@ -42,8 +42,6 @@ def train_command(variant: str, preset_path: Path, preset: dict, args, out: Path
     ]
     if variant == "vib":
         return [str(BIN / "lerobot-train"), f"--config_path={preset_path}", *common]
-    policy = preset["policy"]
-    act = [f"--policy.{ACT_FROM_VIB[k]}={v}" for k, v in policy.items() if k in ACT_FROM_VIB]
     run = [f"--{k}={preset[k]}" for k in ("batch_size", "steps", "num_workers", "log_freq", "save_freq")]
     return [
         str(BIN / "lerobot-train"),
@@ -51,7 +49,7 @@ def train_command(variant: str, preset_path: Path, preset: dict, args, out: Path
         "--policy.device=cpu",
         "--policy.push_to_hub=false",
         "--policy.pretrained_backbone_weights=null",
-        *act,
+        *act_recipe_flags(preset),
         *run,
         "--wandb.enable=false",
         *common,

@@ -214,3 +214,30 @@ def test_a_score_without_training_statistics_is_refused_before_any_rollout():
     rnd = RND(RNDConfig(image_keys=[], state_key="observation.state", state_dim=3))  # never trained: e_bar NaN
     with pytest.raises(RuntimeError, match="no training statistics"):
         rnd_score(rnd)
+
+
+def test_act_is_trained_with_the_vib_presets_augmentation_and_schedule(tmp_path):
+    """ACT beside VIB sees the same images and learning rates: the preset's `dataset.image_transforms` and its
+    warmup-and-cosine schedule reach ACT's training config, as `lerobot-train` parses both."""
+    import draccus
+    from lerobot.configs.train import TrainPipelineConfig
+
+    preset = json.loads((Path(benchmark.__file__).parents[3] / "configs/policy/vib_arm_sim.json").read_text())
+    preset["dataset"]["image_transforms"] = {
+        "enable": True,
+        "max_num_transforms": 1,
+        "tfs": {"shift": {"weight": 1.0, "type": "RandomAffine", "kwargs": {"degrees": 0.0, "translate": [0.1, 0.1]}}},
+    }
+    preset["policy"].update(scheduler_warmup_steps=25, optimizer_lr=3e-4)
+    (tmp_path / "preset.json").write_text(json.dumps(preset))
+    vib = draccus.parse(TrainPipelineConfig, config_path=tmp_path / "preset.json", args=[])
+    vib.optimizer, vib.scheduler = vib.policy.get_optimizer_preset(), vib.policy.get_scheduler_preset()
+    flags = benchmark.act_recipe_flags(preset)
+    act = draccus.parse(TrainPipelineConfig, args=["--policy.type=act", "--dataset.repo_id=local/x", *flags])
+
+    assert act.dataset.image_transforms == vib.dataset.image_transforms
+    assert act.dataset.image_transforms.tfs["shift"].kwargs["translate"] == [0.1, 0.1]
+    assert not act.use_policy_training_preset
+    assert act.optimizer == vib.optimizer and act.scheduler == vib.scheduler
+    assert act.scheduler.num_warmup_steps == 25 and act.optimizer.lr == 3e-4
+    assert act.policy.n_encoder_layers == preset["policy"]["n_layers"] and act.policy.chunk_size == 20

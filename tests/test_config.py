@@ -1,10 +1,12 @@
 """VIBConfig: the shipped preset lists the defaults, and nested run-time settings survive save and load."""
 
+import itertools
 import json
 from pathlib import Path
 
 import draccus
 import pytest
+import torch
 from lerobot.configs.policies import PreTrainedConfig
 
 from helpers import make_config
@@ -57,3 +59,25 @@ def test_home_pose_must_match_the_action_size():
     config.safety.home_pose = [0.0, 0.0]
     with pytest.raises(ValueError, match="home_pose"):
         config.validate_features()
+
+
+def test_warmup_steps_give_lerobots_cosine_schedule_that_ends_at_zero():
+    """`scheduler_warmup_steps`: linear warmup to the learning rate, then a cosine decay to zero at the last
+    step; unset, the learning rate is constant (ACT's preset)."""
+    assert make_config().get_scheduler_preset() is None
+    config = make_config(scheduler_warmup_steps=10, optimizer_lr=3e-4)
+    optimizer = torch.optim.AdamW([torch.nn.Parameter(torch.zeros(1))], lr=config.optimizer_lr)
+    scheduler = config.get_scheduler_preset().build(optimizer, num_training_steps=110)
+    lrs = []
+    for _ in range(110):
+        lrs.append(optimizer.param_groups[0]["lr"])
+        optimizer.step()
+        scheduler.step()
+    assert lrs[0] == 0.0 and lrs[5] == pytest.approx(1.5e-4) and lrs[10] == pytest.approx(3e-4)
+    assert lrs[60] == pytest.approx(1.5e-4) and lrs[-1] < 1e-6
+    assert all(a >= b for a, b in itertools.pairwise(lrs[10:]))
+
+
+def test_negative_warmup_is_refused():
+    with pytest.raises(VIBConfigError, match="scheduler_warmup_steps"):
+        make_config(scheduler_warmup_steps=-1)

@@ -8,6 +8,7 @@ from dataclasses import dataclass, field
 from draccus.utils import ParsingError
 from lerobot.configs import FeatureType, NormalizationMode, PreTrainedConfig
 from lerobot.optim import AdamWConfig
+from lerobot.optim.schedulers import CosineAnnealingWithWarmupSchedulerConfig
 from lerobot.utils.constants import ACTION, OBS_STATE
 
 from .backbone import BACKBONE_NORMS
@@ -198,6 +199,9 @@ class VIBConfig(PreTrainedConfig):
         optimizer_lr: AdamW learning rate (ACT's preset).
         optimizer_weight_decay: AdamW weight decay (ACT's preset).
         optimizer_lr_backbone: Learning rate of the ResNet trunk (ACT's preset).
+        scheduler_warmup_steps: None (ACT's preset): a constant learning rate. An integer: LeRobot's
+            `cosine_annealing_with_warmup`, a linear warmup over this many steps and then a cosine decay to zero
+            at the run's last step, so the last checkpoint is the settled one (from-scratch recipes).
     """
 
     # Input / output structure.
@@ -252,6 +256,7 @@ class VIBConfig(PreTrainedConfig):
     optimizer_lr: float = 1e-5
     optimizer_weight_decay: float = 1e-4
     optimizer_lr_backbone: float = 1e-5
+    scheduler_warmup_steps: int | None = None
 
     def __post_init__(self):
         super().__post_init__()
@@ -291,6 +296,8 @@ class VIBConfig(PreTrainedConfig):
             )
         if self.dim_model % self.n_heads != 0:
             raise VIBConfigError(f"`dim_model` ({self.dim_model}) must be divisible by `n_heads` ({self.n_heads}).")
+        if self.scheduler_warmup_steps is not None and self.scheduler_warmup_steps < 0:
+            raise VIBConfigError(f"`scheduler_warmup_steps` must be >= 0 or null, got {self.scheduler_warmup_steps}.")
         if self.beta < 0:
             raise VIBConfigError(f"`beta` must be >= 0, got {self.beta}.")
         if not 0 < self.rate_momentum <= 1:
@@ -308,8 +315,10 @@ class VIBConfig(PreTrainedConfig):
     def get_optimizer_preset(self) -> AdamWConfig:
         return AdamWConfig(lr=self.optimizer_lr, weight_decay=self.optimizer_weight_decay)
 
-    def get_scheduler_preset(self) -> None:
-        return None
+    def get_scheduler_preset(self) -> CosineAnnealingWithWarmupSchedulerConfig | None:
+        if self.scheduler_warmup_steps is None:
+            return None
+        return CosineAnnealingWithWarmupSchedulerConfig(num_warmup_steps=self.scheduler_warmup_steps)
 
     def validate_features(self) -> None:
         """Fail early on feature sets the model cannot encode or decode."""

@@ -228,18 +228,45 @@ def train_command(network: str, cfg: BenchmarkConfig, out: Path) -> list[str]:
     if network == "vib":
         return [_bin("lerobot-train"), f"--config_path={cfg.preset}", *common]
     preset = json.loads(cfg.preset.read_text())
-    act = [f"--policy.{ACT_FROM_VIB[k]}={v}" for k, v in preset["policy"].items() if k in ACT_FROM_VIB]
     run = [f"--{k}={preset[k]}" for k in ("batch_size", "num_workers", "log_freq") if k in preset]
     return [
         _bin("lerobot-train"),
         "--policy.type=act",
         "--policy.push_to_hub=false",
         "--policy.pretrained_backbone_weights=null",
-        *act,
+        *act_recipe_flags(preset),
         *run,
         "--wandb.enable=false",
         *common,
     ]
+
+
+def act_recipe_flags(preset: dict) -> list[str]:
+    """`lerobot-train` flags that give ACT the VIB preset's sizes and training recipe.
+
+    The sizes and learning rates through `ACT_FROM_VIB`; the preset's image augmentation
+    (`dataset.image_transforms`) as it is; and its learning-rate schedule, which ACT's own preset lacks, as an
+    explicit optimizer and scheduler (`use_policy_training_preset=false`), so both networks see the same
+    learning rate at every step.
+    """
+    policy = preset["policy"]
+    flags = [f"--policy.{ACT_FROM_VIB[k]}={v}" for k, v in policy.items() if k in ACT_FROM_VIB]
+    transforms = preset.get("dataset", {}).get("image_transforms")
+    if transforms:
+        flags += [
+            f"--dataset.image_transforms.{k}={json.dumps(v) if isinstance(v, dict) else str(v).lower()}"
+            for k, v in transforms.items()
+        ]
+    if policy.get("scheduler_warmup_steps") is not None:
+        flags += [
+            "--use_policy_training_preset=false",
+            "--optimizer.type=adamw",
+            f"--optimizer.lr={policy['optimizer_lr']}",
+            f"--optimizer.weight_decay={policy['optimizer_weight_decay']}",
+            "--scheduler.type=cosine_annealing_with_warmup",
+            f"--scheduler.num_warmup_steps={policy['scheduler_warmup_steps']}",
+        ]
+    return flags
 
 
 def train(network: str, cfg: BenchmarkConfig) -> Path:
