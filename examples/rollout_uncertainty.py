@@ -39,8 +39,8 @@ from lerobot.policies.factory import make_pre_post_processors
 
 from lerobot_vib.modeling_vib import VIBPolicy
 from lerobot_vib.sim.aloha_env import FastAlohaEnv
+from lerobot_vib.sim.arm_env import DEFAULT_WORKSPACE, WORKSPACES, ArmGraspEnv
 from lerobot_vib.sim.arm_env import EPISODE_LENGTH as ARM_EPISODE_LENGTH
-from lerobot_vib.sim.arm_env import ArmGraspEnv
 from lerobot_vib.sim.perturbations import PerturbationConfig
 
 TASKS = ("transfer_cube", "insertion", "grasp_block")
@@ -90,7 +90,7 @@ def rollout(args: argparse.Namespace) -> dict:
             occlusion = dict(occlusion=True, occlusion_start=args.occlude[0], occlusion_duration=len(occluded_steps))
         env = ArmGraspEnv(
             observation_height=height, observation_width=width, cameras=cameras, shadows=shadows,
-            perturbation=PerturbationConfig(**occlusion),
+            workspace=args.workspace, perturbation=PerturbationConfig(**occlusion),
         )  # fmt: skip
     else:
         env = FastAlohaEnv(
@@ -205,6 +205,12 @@ def main() -> None:
         default=None,
         help="render shadows (use the setting the training data was recorded with; default: the recorder's, "
         "off for ALOHA, on for the arm)",
+    )
+    parser.add_argument(
+        "--workspace",
+        choices=list(WORKSPACES),
+        default=DEFAULT_WORKSPACE,
+        help="the arm's block placement ranges (use the one the training data was recorded in)",
     )
     parser.add_argument("--device", default="cpu")
     parser.add_argument("--out", type=Path, default=Path("outputs/uncertainty"))

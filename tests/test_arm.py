@@ -13,12 +13,12 @@ from lerobot.datasets.lerobot_dataset import LeRobotDataset
 
 from helpers import BIN, TRAIN_ARGS, run
 from lerobot_vib.configuration_vib import VIBConfigError
-from lerobot_vib.sim.arm_env import EPISODE_LENGTH, ArmGraspEnv, block_pose
+from lerobot_vib.sim.arm_env import EPISODE_LENGTH, WORKSPACES, ArmGraspEnv, block_pose
 from lerobot_vib.sim.arm_scene import HOME, load_model
 from lerobot_vib.sim.arm_scripted import ArmIK, grasp_rotation, plan_grasp
 from lerobot_vib.sim.env_config import ArmGraspEnvConfig
 from lerobot_vib.sim.perturbations import PerturbationConfig
-from lerobot_vib.sim.recorder import RecordingSettings, record_scripted_dataset
+from lerobot_vib.sim.recorder import RecordingError, RecordingLog, RecordingSettings, record_scripted_dataset
 from lerobot_vib.sim.sim_tasks import get_task
 
 SMALL = dict(image_height=48, image_width=64, cameras=["scene"], shadows=True, use_videos=True)
@@ -61,6 +61,36 @@ def test_the_start_state_does_not_reveal_the_block():
     actions_0 = get_task("grasp_block").scripted_actions(0)
     assert _rollout(env, 0, actions_0)
     assert not _rollout(env, 1, actions_0)
+
+
+def test_the_workspace_bounds_the_blocks_placement_and_near_lies_inside_wide():
+    for name, ranges in WORKSPACES.items():
+        poses = np.array([[*xy, yaw] for xy, yaw in (block_pose(seed, name) for seed in range(300))])
+        for column, (low, high) in enumerate((ranges.x, ranges.y, ranges.yaw)):
+            assert low <= poses[:, column].min() and poses[:, column].max() <= high
+            assert poses[:, column].max() - poses[:, column].min() > 0.9 * (high - low)  # the whole range is used
+    near, wide = WORKSPACES["near"], WORKSPACES["wide"]
+    for inner, outer in ((near.x, wide.x), (near.y, wide.y), (near.yaw, wide.yaw)):
+        assert outer[0] < inner[0] < inner[1] < outer[1]
+
+
+@pytest.mark.parametrize("workspace", list(WORKSPACES))
+def test_env_places_the_block_where_its_workspace_says(workspace):
+    env = ArmGraspEnv(cameras=(), workspace=workspace)
+    env.reset(seed=5)
+    np.testing.assert_allclose(env.data.qpos[env._block_qadr : env._block_qadr + 2], block_pose(5, workspace)[0])
+    assert get_task("grasp_block").scripted_actions(5, workspace) is not None
+
+
+def test_an_unknown_workspace_is_refused_by_name():
+    with pytest.raises(ValueError, match="Unknown arm workspace 'far'"):
+        ArmGraspEnv(cameras=(), workspace="far")
+    with pytest.raises(ValueError, match="Unknown workspace 'far' for grasp_block"):
+        RecordingSettings(task="grasp_block", workspace="far", **SMALL)
+    with pytest.raises(ValueError, match="Unknown workspace 'near' for transfer_cube; it offers none"):
+        RecordingSettings(task="transfer_cube", workspace="near", **SMALL)
+    with pytest.raises(VIBConfigError, match="Unknown arm workspace 'far'"):
+        ArmGraspEnvConfig(workspace="far")
 
 
 def test_env_resets_reproducibly_from_the_seed():
@@ -194,6 +224,27 @@ def test_env_config_takes_the_recordings_settings(arm_recording):
     assert tuple(cfg.features["agent_pos"].shape) == (7,)
     with pytest.raises(VIBConfigError, match="observation_height=120 contradicts"):
         ArmGraspEnvConfig(dataset_root=str(arm_recording), observation_height=120)
+    assert cfg.workspace == "wide" and cfg.gym_kwargs["workspace"] == "wide"
+    with pytest.raises(VIBConfigError, match="workspace=near contradicts"):
+        ArmGraspEnvConfig(dataset_root=str(arm_recording), workspace="near")
+
+
+def test_an_arm_recording_from_before_workspaces_is_read_as_wide(arm_recording, tmp_path):
+    """Its blocks were placed in the wide ranges, the only ones there were."""
+    sidecar = json.loads((arm_recording / "meta/scripted_recording.json").read_text())
+    del sidecar["settings"]["workspace"]
+    (tmp_path / "meta").mkdir()
+    (tmp_path / "meta/scripted_recording.json").write_text(json.dumps(sidecar))
+    assert RecordingLog.load(tmp_path).settings.workspace == "wide"
+    assert ArmGraspEnvConfig(dataset_root=str(tmp_path)).workspace == "wide"
+
+
+def test_resuming_in_another_workspace_is_refused_and_changes_nothing(arm_recording):
+    before = sorted((p.relative_to(arm_recording), p.stat().st_size) for p in arm_recording.rglob("*"))
+    near = RecordingSettings(task="grasp_block", workspace="near", **SMALL)
+    with pytest.raises(RecordingError, match="'workspace': 'wide'"):
+        record_scripted_dataset(arm_recording, "local/arm", near, 3, resume=True, progress=False)
+    assert sorted((p.relative_to(arm_recording), p.stat().st_size) for p in arm_recording.rglob("*")) == before
 
 
 @pytest.fixture(scope="module")

@@ -32,6 +32,8 @@ class RecordSimConfig:
     image_height, image_width: Camera resolution (default: gym-aloha's 480x640 for ALOHA, 96x128 for the arm).
     cameras: MuJoCo cameras to record, each as observation.images.<camera> (default: top for ALOHA, scene for
         the arm, which also has wrist).
+    workspace: The arm only: the ranges the block is placed in, `wide` (default) or `near` (see
+        `lerobot_vib.sim.arm_env`). `--env.dataset_root` makes `lerobot-eval` use the recording's.
     shadows: Render shadows as gym-aloha does; false is about 3x faster on a CPU but the images differ.
     use_videos: Store cameras as MP4 videos (as the Hub datasets) rather than PNG frames.
     seed: First seed; episode seeds are consecutive, failed ones skipped.
@@ -48,6 +50,7 @@ class RecordSimConfig:
     image_height: int | None = None
     image_width: int | None = None
     cameras: list[str] | None = None
+    workspace: str | None = None
     shadows: bool = True
     use_videos: bool = True
     seed: int = 0
@@ -66,6 +69,7 @@ class RecordSimConfig:
         if self.image_width is None:
             self.image_width = task.default_size[1]
         self.cameras = list(task.default_cameras if self.cameras is None else self.cameras)
+        self.workspace = task.check_workspace(self.workspace)
         if self.root is None:
             self.root = HF_LEROBOT_HOME / self.repo_id
         if self.num_episodes < 1:
@@ -83,6 +87,7 @@ def record_sim(cfg: RecordSimConfig) -> None:
         cameras=list(cfg.cameras),
         shadows=cfg.shadows,
         use_videos=cfg.use_videos,
+        workspace=cfg.workspace,
     )
     result = record_scripted_dataset(
         root=cfg.root,

@@ -2,7 +2,13 @@
 
 Observations are `{"pixels": {camera: HxWx3 uint8}, "agent_pos": (7,)}` (six joint angles and the gripper
 opening in [0, 1]); the action is the 7 targets of the same quantities, at 20 Hz. `reset(seed)` draws the
-block's position and yaw (and the episode's perturbations) from the seed alone.
+block's position and yaw (and the episode's perturbations) from the seed alone, uniformly over the ranges of
+the env's `workspace`:
+
+    wide  x in [0.30, 0.48] m, y in [-0.14, 0.14] m, yaw in [-45, 45] deg   (the default; every yaw of the cube)
+    near  x in [0.33, 0.45] m, y in [-0.08, 0.08] m, yaw in [-30, 30] deg
+
+Either way a policy must see the block: the gripper's opening leaves about 1.5 cm either side of it.
 
 Reward per step: 0, 0.5 while both fingers touch the block, 1 while the block is lifted (its bottom at
 least `LIFT_SUCCESS` above the table). Success, which ends the episode: lifted for `HOLD_STEPS` steps in a
@@ -12,6 +18,7 @@ row.
 from __future__ import annotations
 
 from collections.abc import Sequence
+from dataclasses import dataclass
 from typing import ClassVar
 
 import gymnasium as gym
@@ -38,16 +45,39 @@ EPISODE_LENGTH = 100
 SUBSTEPS = 25  # 0.002 s physics steps per 0.05 s control step
 LIFT_SUCCESS = 0.04
 HOLD_STEPS = 5
-# Block placement, drawn uniformly per episode (metres, radians): in front of the arm, any yaw of the cube.
-BLOCK_X, BLOCK_Y, BLOCK_YAW = (0.30, 0.48), (-0.14, 0.14), (-np.pi / 4, np.pi / 4)
 OCCLUDER_AT = np.array([0.7, 0.0, 0.3])  # between the scene camera and the workspace
 
 
-def block_pose(seed: int | None) -> tuple[np.ndarray, float]:
-    """The block's centre (x, y on the table) and yaw for `seed`."""
+@dataclass(frozen=True)
+class Workspace:
+    """Ranges the block's placement is drawn from, uniformly per episode (metres, radians)."""
+
+    x: tuple[float, float]
+    y: tuple[float, float]
+    yaw: tuple[float, float]
+
+
+WORKSPACES = {
+    "wide": Workspace(x=(0.30, 0.48), y=(-0.14, 0.14), yaw=(-np.pi / 4, np.pi / 4)),
+    "near": Workspace(x=(0.33, 0.45), y=(-0.08, 0.08), yaw=(-np.pi / 6, np.pi / 6)),
+}
+DEFAULT_WORKSPACE = "wide"
+# Recordings made before the workspace was a setting placed the block in the wide one.
+LEGACY_WORKSPACE = "wide"
+
+
+def get_workspace(name: str) -> Workspace:
+    if name not in WORKSPACES:
+        raise ValueError(f"Unknown arm workspace {name!r}; expected one of {list(WORKSPACES)}.")
+    return WORKSPACES[name]
+
+
+def block_pose(seed: int | None, workspace: str = DEFAULT_WORKSPACE) -> tuple[np.ndarray, float]:
+    """The block's centre (x, y on the table) and yaw for `seed` in `workspace`."""
+    ranges = get_workspace(workspace)
     rng = np.random.default_rng(seed)
-    xy = np.array([rng.uniform(*BLOCK_X), rng.uniform(*BLOCK_Y)])
-    return xy, float(rng.uniform(*BLOCK_YAW))
+    xy = np.array([rng.uniform(*ranges.x), rng.uniform(*ranges.y)])
+    return xy, float(rng.uniform(*ranges.yaw))
 
 
 def check_cameras(cameras: Sequence[str]) -> tuple[str, ...]:
@@ -66,6 +96,7 @@ class ArmGraspEnv(gym.Env):
         observation_width: int = 128,
         cameras: Sequence[str] = ("scene",),
         shadows: bool = True,
+        workspace: str = DEFAULT_WORKSPACE,
         perturbation: PerturbationConfig | dict | None = None,
         render_mode: str = "rgb_array",
         visualization_height: int = 240,
@@ -78,6 +109,8 @@ class ArmGraspEnv(gym.Env):
             perturbation = PerturbationConfig(**perturbation)
         self.perturbation = perturbation or PerturbationConfig()
         self.cameras = check_cameras(cameras)
+        get_workspace(workspace)
+        self.workspace = workspace
         self.height, self.width = observation_height, observation_width
         self.vis_size = (visualization_height, visualization_width)
         self.render_mode = render_mode
@@ -133,7 +166,7 @@ class ArmGraspEnv(gym.Env):
         self.model.geom_size[self._block_geom] = half
         self.model.geom_rgba[self._block_geom] = self.scene.block_rgba or BLOCK_RGBA
         mujoco.mj_resetData(self.model, self.data)
-        xy, yaw = block_pose(seed)
+        xy, yaw = block_pose(seed, self.workspace)
         self.data.qpos[self._qadr] = HOME
         self.data.qpos[self._finger] = self.data.qpos[self._finger_r] = FINGER_TRAVEL
         self.data.qpos[self._block_qadr : self._block_qadr + 7] = [*xy, half, np.cos(yaw / 2), 0, 0, np.sin(yaw / 2)]

@@ -1,7 +1,7 @@
 """`--env.type=aloha_fast` and `--env.type=vib_arm`: LeRobot env configs for `FastAlohaEnv` and
 `ArmGraspEnv`, and their gym registrations.
 
-Importing this module is cheap (no MuJoCo); the env itself loads on `gym.make`.
+The envs themselves are built on `gym.make`.
 """
 
 from __future__ import annotations
@@ -16,6 +16,9 @@ from lerobot.envs.configs import AlohaEnv, EnvConfig
 from lerobot.utils.constants import ACTION, OBS_IMAGES, OBS_STATE
 
 from ..configuration_vib import VIBConfigError
+from .arm_env import DEFAULT_WORKSPACE as ARM_DEFAULT_WORKSPACE
+from .arm_env import LEGACY_WORKSPACE as ARM_LEGACY_WORKSPACE
+from .arm_env import WORKSPACES as ARM_WORKSPACES
 from .arm_scene import CAMERAS as ARM_CAMERAS
 from .perturbations import PerturbationConfig
 
@@ -173,8 +176,10 @@ class ArmGraspEnvConfig(_RenderingEnv, EnvConfig):
         observation_height, observation_width: Camera image size.
         cameras: Any of `scene` (fixed, in front of the arm) and `wrist`.
         shadows: Render shadows (cheap at this scene's size; `false` changes the images).
+        workspace: The ranges the block is placed in per episode: `near` or `wide` (`arm_env.WORKSPACES`).
         dataset_root: The root of a dataset recorded by `lerobot-vib-record-sim --task=grasp_block`: its image
-            size, cameras and shadow setting are used. A flag that contradicts the recording is refused.
+            size, cameras, shadow setting and workspace are used. A flag that contradicts the recording is
+            refused.
         perturbation: Perturbations drawn per episode from its seed: `noise_std`, `color_jitter`,
             `camera_shake`, `unseen_block`, `occlusion` (with `occlusion_start` / `occlusion_duration`).
     """
@@ -188,6 +193,7 @@ class ArmGraspEnvConfig(_RenderingEnv, EnvConfig):
     observation_width: int = 128
     cameras: list[str] = field(default_factory=lambda: ["scene"])
     shadows: bool = True
+    workspace: str = ARM_DEFAULT_WORKSPACE
     dataset_root: str | None = None
     perturbation: PerturbationConfig = field(default_factory=PerturbationConfig)
 
@@ -202,8 +208,11 @@ class ArmGraspEnvConfig(_RenderingEnv, EnvConfig):
                 "observation_width": recorded["image_width"],
                 "cameras": list(recorded["cameras"]),
                 "shadows": recorded["shadows"],
+                "workspace": recorded.get("workspace") or ARM_LEGACY_WORKSPACE,
             }
             _adopt(self, root, wanted)
+        if self.workspace not in ARM_WORKSPACES:
+            raise VIBConfigError(f"Unknown arm workspace {self.workspace!r}; expected one of {list(ARM_WORKSPACES)}.")
         if self.task != ARM_GYM_TASK:
             raise VIBConfigError(f"Unknown task {self.task!r} for env type vib_arm; expected {ARM_GYM_TASK!r}.")
         if self.obs_type != "pixels_agent_pos":
@@ -211,3 +220,7 @@ class ArmGraspEnvConfig(_RenderingEnv, EnvConfig):
         if not self.cameras or any(c not in ARM_CAMERAS for c in self.cameras):
             raise VIBConfigError(f"`cameras` must be a non-empty subset of {list(ARM_CAMERAS)}, got {self.cameras}.")
         self._set_features(ARM_STATE_SIZE)
+
+    @property
+    def gym_kwargs(self) -> dict:
+        return {**super().gym_kwargs, "workspace": self.workspace}

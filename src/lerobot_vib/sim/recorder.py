@@ -30,6 +30,7 @@ from gymnasium import Env
 from lerobot.datasets.lerobot_dataset import LeRobotDataset, LeRobotDatasetMetadata
 from tqdm import tqdm
 
+from .arm_env import LEGACY_WORKSPACE
 from .env_config import SIDECAR
 from .sim_tasks import get_task
 
@@ -54,6 +55,11 @@ class RecordingSettings:
     cameras: list[str]
     shadows: bool
     use_videos: bool
+    # The arm's block placement ranges (`arm_env.WORKSPACES`); None: the task's default (none for ALOHA).
+    workspace: str | None = None
+
+    def __post_init__(self):
+        self.workspace = get_task(self.task).check_workspace(self.workspace)
 
 
 @dataclass
@@ -79,7 +85,10 @@ class RecordingLog:
     def load(cls, root: Path) -> RecordingLog:
         data = json.loads((root / SIDECAR).read_text())
         data.pop("pending_seed", None)  # written by earlier versions
-        return cls(settings=RecordingSettings(**data.pop("settings")), **data)
+        settings = data.pop("settings")
+        if get_task(settings["task"]).workspaces:  # an arm recording made before the workspace was a setting
+            settings.setdefault("workspace", LEGACY_WORKSPACE)
+        return cls(settings=RecordingSettings(**settings), **data)
 
 
 def _durable_write(path: Path, text: str) -> None:
@@ -308,7 +317,9 @@ def record_scripted_dataset(
     missing = num_episodes - len(log.episode_seeds)
     next_seed = log.next_seed if log.next_seed is not None else seed
     max_attempts = 3 * max(missing, 0) + 10 if max_attempts is None else max_attempts
-    env = task.make_env(settings.cameras, settings.image_height, settings.image_width, settings.shadows)
+    env = task.make_env(
+        settings.cameras, settings.image_height, settings.image_width, settings.shadows, settings.workspace
+    )
     bar = tqdm(total=num_episodes, initial=len(log.episode_seeds), desc=f"{settings.task}", disable=not progress)
     attempts = 0
     interrupt = _DeferredInterrupt()
@@ -322,7 +333,7 @@ def record_scripted_dataset(
                         f"in this run (seeds up to {next_seed - 1}); raise `max_attempts` to keep trying."
                     )
                 attempts += 1
-                actions = task.scripted_actions(next_seed)
+                actions = task.scripted_actions(next_seed, settings.workspace)
                 if actions is None:
                     log.failed_seeds.append(next_seed)
                 else:

@@ -32,10 +32,14 @@ class ScriptedTask:
     cameras: tuple[str, ...]  # every camera the scene has
     default_cameras: tuple[str, ...]
     default_size: tuple[int, int]  # (height, width)
-    # (cameras, height, width, shadows) -> an env whose reset(seed) places the scene of that seed
-    make_env: Callable[[Sequence[str], int, int, bool], Env]
-    # seed -> the joint actions of a scripted episode that succeeds, or None where the script fails
-    scripted_actions: Callable[[int], np.ndarray | None]
+    # (cameras, height, width, shadows, workspace) -> an env whose reset(seed) places the scene of that seed
+    make_env: Callable[[Sequence[str], int, int, bool, str | None], Env]
+    # (seed, workspace) -> the joint actions of a scripted episode that succeeds, or None where the script fails
+    scripted_actions: Callable[[int, str | None], np.ndarray | None]
+    # Named ranges of the object's placement the task offers (the arm's `arm_env.WORKSPACES`); empty where
+    # the scene fixes them (ALOHA).
+    workspaces: tuple[str, ...] = ()
+    default_workspace: str | None = None
 
     def check_cameras(self, cameras: Sequence[str]) -> tuple[str, ...]:
         unknown = [c for c in cameras if c not in self.cameras]
@@ -44,6 +48,15 @@ class ScriptedTask:
                 f"Cameras must be a non-empty subset of {list(self.cameras)} for {self.name}, got {list(cameras)}."
             )
         return tuple(cameras)
+
+    def check_workspace(self, workspace: str | None) -> str | None:
+        """`workspace`, or the task's default where None; a workspace the task does not have is refused."""
+        if workspace is None:
+            return self.default_workspace
+        if workspace not in self.workspaces:
+            offered = f"one of {list(self.workspaces)}" if self.workspaces else "none (its scene fixes the placement)"
+            raise ValueError(f"Unknown workspace {workspace!r} for {self.name}; it offers {offered}.")
+        return workspace
 
 
 def replay_max_reward(task: str, seed: int, actions: np.ndarray) -> float:
@@ -58,10 +71,10 @@ def replay_max_reward(task: str, seed: int, actions: np.ndarray) -> float:
 
 
 def _aloha_task(name: str) -> ScriptedTask:
-    def make_env(cameras: Sequence[str], height: int, width: int, shadows: bool) -> Env:
+    def make_env(cameras: Sequence[str], height: int, width: int, shadows: bool, workspace: None = None) -> Env:
         return FastAlohaEnv(name, cameras=cameras, observation_height=height, observation_width=width, shadows=shadows)
 
-    def scripted_actions(seed: int) -> np.ndarray | None:
+    def scripted_actions(seed: int, workspace: None = None) -> np.ndarray | None:
         actions = script_episode(name, seed).joint_actions
         # The end-effector script can succeed where the joint replay does not; only the replay is recorded.
         return actions if replay_max_reward(name, seed, actions) >= SUCCESS_REWARD else None
@@ -80,15 +93,23 @@ def _aloha_task(name: str) -> ScriptedTask:
     )
 
 
-def _arm_env(cameras: Sequence[str], height: int, width: int, shadows: bool) -> Env:
-    return arm_env.ArmGraspEnv(observation_height=height, observation_width=width, cameras=cameras, shadows=shadows)
+def _arm_env(cameras: Sequence[str], height: int, width: int, shadows: bool, workspace: str | None = None) -> Env:
+    return arm_env.ArmGraspEnv(
+        observation_height=height,
+        observation_width=width,
+        cameras=cameras,
+        shadows=shadows,
+        workspace=workspace or arm_env.DEFAULT_WORKSPACE,
+    )
 
 
-def _arm_actions(seed: int) -> np.ndarray | None:
-    env = arm_env.ArmGraspEnv(cameras=())  # physics only: the plan is checked before anything is rendered
+def _arm_actions(seed: int, workspace: str | None = None) -> np.ndarray | None:
+    workspace = workspace or arm_env.DEFAULT_WORKSPACE
+    # Physics only: the plan is checked before anything is rendered.
+    env = arm_env.ArmGraspEnv(cameras=(), workspace=workspace)
     try:
         env.reset(seed=seed)
-        xy, yaw = arm_env.block_pose(seed)
+        xy, yaw = arm_env.block_pose(seed, workspace)
         plan = plan_grasp(env.model, np.array([*xy, env.block_half]), yaw, arm_env.EPISODE_LENGTH, env.block_half)
         for action in plan.actions:
             if env.step(action)[2]:
@@ -112,6 +133,8 @@ SCRIPTED_TASKS = {
         default_size=(96, 128),
         make_env=_arm_env,
         scripted_actions=_arm_actions,
+        workspaces=tuple(arm_env.WORKSPACES),
+        default_workspace=arm_env.DEFAULT_WORKSPACE,
     ),
 }
 
