@@ -176,7 +176,7 @@ class ArmGraspEnvConfig(_RenderingEnv, EnvConfig):
         observation_height, observation_width: Camera image size.
         cameras: Any of `scene` (fixed, in front of the arm) and `wrist`.
         shadows: Render shadows (cheap at this scene's size; `false` changes the images).
-        workspace: The ranges the block is placed in per episode: `near` or `wide` (`arm_env.WORKSPACES`).
+        workspace: The ranges the block is placed in per episode: `wide` (default) or `near` (`arm_env.WORKSPACES`).
         dataset_root: The root of a dataset recorded by `lerobot-vib-record-sim --task=grasp_block`: its image
             size, cameras, shadow setting and workspace are used. A flag that contradicts the recording is
             refused.
