@@ -123,7 +123,16 @@ def main() -> None:
     p.add_argument("--note", default="", help="a remark on how this run went, printed in the report")
     p.add_argument("--eval_only", action="store_true", help="evaluate the checkpoints saved so far; train nothing")
     p.add_argument("--output", type=Path, default=None, help="write the Markdown report here")
+    p.add_argument(
+        "--inference",
+        action="append",
+        default=[],
+        metavar="NAME=FLAGS",
+        help="also evaluate every VIB checkpoint with these lerobot-eval policy flags (space-separated), e.g. "
+        "'uncertainty=--policy.temporal_ensemble=uncertainty --policy.n_action_steps=1'; repeatable",
+    )
     args = p.parse_args()
+    inference = dict(parse_inference(spec) for spec in args.inference)
     preset = json.loads(args.preset.read_text())
 
     rows = []
@@ -139,9 +148,15 @@ def main() -> None:
             result = evaluate(model, args, args.out / variant / f"eval_{ckpt.name}")
             rows.append(dict(variant=variant, step=int(ckpt.name), wall_s=wall, images="clean", **result))
             print(f"{variant} step {ckpt.name}: {result['success']}/{result['n']}", flush=True)
+            for name, flags in inference.items() if variant == "vib" else ():
+                result = evaluate(model, args, args.out / variant / f"eval_{ckpt.name}_{name}", flags)
+                rows.append(
+                    dict(variant=variant, step=int(ckpt.name), wall_s=wall, images="clean", inference=name, **result)
+                )
+                print(f"{variant} step {ckpt.name} ({name}): {result['success']}/{result['n']}", flush=True)
         if variant == "vib":
             blind = evaluate(
-                checkpoints[-1] / "pretrained_model", args, args.out / variant / "eval_black",
+                checkpoints[-1] / "pretrained_model", args, args.out / variant / f"eval_{checkpoints[-1].name}_black",
                 ["--env.perturbation.black_images=true"],
             )  # fmt: skip
             rows.append(dict(variant=variant, step=int(checkpoints[-1].name), wall_s=None, images="black", **blind))
@@ -150,7 +165,17 @@ def main() -> None:
     plot(rows, args)
 
 
+def parse_inference(spec: str) -> tuple[str, list[str]]:
+    """'NAME=FLAG FLAG ...' -> (NAME, [FLAG, ...]); NAME names the evaluation folders and the report's rows."""
+    name, sep, flags = spec.partition("=")
+    if not sep or not name.isidentifier() or not flags.split() or not all(f.startswith("--") for f in flags.split()):
+        raise SystemExit(f"--inference wants NAME=--flag [--flag ...] with NAME a plain word, got {spec!r}.")
+    return name, flags.split()
+
+
 def render(args, preset: dict, rows: list[dict]) -> str:
+    inference = dict(parse_inference(spec) for spec in args.inference)
+    described = "; ".join(f"{name}: `{' '.join(flags)}`" for name, flags in inference.items())
     lines = [
         "# The simulated arm: VIB and ACT learning to grasp with one CPU budget",
         "",
@@ -162,14 +187,15 @@ def render(args, preset: dict, rows: list[dict]) -> str:
         f"ACT is LeRobot's with the same sizes, learning rates and budget. Evaluation: `lerobot-eval "
         f"--env.type=vib_arm`, {args.eval_episodes} episodes from seed {args.eval_seed}, the same for every row.",
         "",
-        "| policy | step | wall time (min) | images | success (95% Wilson) |",
-        "| --- | ---: | ---: | --- | ---: |",
+        "| policy | step | wall time (min) | images | inference | success (95% Wilson) |",
+        "| --- | ---: | ---: | --- | --- | ---: |",
     ]
     for r in rows:
         low, high = wilson_interval(r["success"], r["n"])
         wall = "-" if r["wall_s"] is None else f"{r['wall_s'] / 60:.0f}"
         lines.append(
-            f"| {r['variant']} | {r['step']} | {wall} | {r['images']} | {r['success']}/{r['n']} "
+            f"| {r['variant']} | {r['step']} | {wall} | {r['images']} | {r.get('inference', 'as trained')} | "
+            f"{r['success']}/{r['n']} "
             f"({100 * r['success'] / r['n']:.0f}%, {100 * low:.0f}-{100 * high:.0f}%) |"
         )
     lines += [
@@ -183,6 +209,7 @@ def render(args, preset: dict, rows: list[dict]) -> str:
             if (args.out / v / "command.txt").exists()
         ],
         "",
+        *([f"Inference: {described}", ""] if described else []),
         "Wall time includes everything the training process did up to that checkpoint (data loading, saving), "
         "on a machine where other work may have shared the two cores; evaluation time is not included.",
         *(["", f"Note: {args.note}"] if args.note else []),
@@ -201,9 +228,11 @@ def plot(rows: list[dict], args) -> None:
     except ImportError:
         return
     fig, ax = plt.subplots(figsize=(6, 4))
-    for variant in args.variants:
-        clean = [r for r in rows if r["variant"] == variant and r["images"] == "clean"]
-        ax.plot([r["step"] for r in clean], [100 * r["success"] / r["n"] for r in clean], marker="o", label=variant)
+    clean_rows = [r for r in rows if r["images"] == "clean"]
+    for variant, inference in dict.fromkeys((r["variant"], r.get("inference")) for r in clean_rows):
+        clean = [r for r in clean_rows if (r["variant"], r.get("inference")) == (variant, inference)]
+        label = variant if inference is None else f"{variant} ({inference})"
+        ax.plot([r["step"] for r in clean], [100 * r["success"] / r["n"] for r in clean], marker="o", label=label)
     ax.set(xlabel="training step", ylabel="success (%)", ylim=(-2, 102), title="grasp_block, clean episodes")
     ax.legend()
     fig.tight_layout()

@@ -8,11 +8,15 @@ network once per chunk, VIB also encodes every step's observation for its uncert
 Prints a Markdown table with VIB/ACT ratios and, with --output, writes it to a file.
 
     python benchmarks/bench_policy.py --sizes 120x160 480x640 --output benchmarks/results/cpu.md
+
+`--vib KEY=VALUE` and `--act KEY=VALUE` (repeatable, VALUE read as JSON where it parses) change a field of
+VIB's or ACT's config from its default, e.g. `--vib backbone_layer=layer3 --vib n_layers=2`.
 """
 
 from __future__ import annotations
 
 import argparse
+import json
 import statistics
 import sys
 import time
@@ -42,13 +46,29 @@ def features(h: int, w: int) -> dict:
 KINDS = ("act", "vib", "vib_u_at_plans")
 
 
-def make_policy(kind: str, h: int, w: int, chunk_size: int, device: str) -> torch.nn.Module:
+def make_policy(
+    kind: str, h: int, w: int, chunk_size: int, device: str, vib: dict | None = None, act: dict | None = None
+) -> torch.nn.Module:
     common = dict(device=device, pretrained_backbone_weights=None, chunk_size=chunk_size, n_action_steps=1)
     if kind == "vib":
-        return VIBPolicy(VIBConfig(**common, **features(h, w))).to(device)
+        return VIBPolicy(VIBConfig(**common, **features(h, w), **(vib or {}))).to(device)
     if kind == "vib_u_at_plans":  # uncertainty only when a chunk is planned: ACT's cost with the queue
-        return VIBPolicy(VIBConfig(**common, **features(h, w), uncertainty_every_step=False)).to(device)
-    return ACTPolicy(ACTConfig(**common, **features(h, w))).to(device)
+        return VIBPolicy(VIBConfig(**common, **features(h, w), **(vib or {}), uncertainty_every_step=False)).to(device)
+    return ACTPolicy(ACTConfig(**common, **features(h, w), **(act or {}))).to(device)
+
+
+def overrides(pairs: list[str]) -> dict:
+    """['n_layers=2', 'backbone_layer=layer3'] -> {'n_layers': 2, 'backbone_layer': 'layer3'}."""
+    out = {}
+    for pair in pairs:
+        key, sep, value = pair.partition("=")
+        if not sep or not key:
+            raise SystemExit(f"Expected KEY=VALUE, got {pair!r}.")
+        try:
+            out[key] = json.loads(value)
+        except json.JSONDecodeError:
+            out[key] = value
+    return out
 
 
 def batch(h: int, w: int, b: int, chunk_size: int, device: str, with_action: bool = True) -> dict:
@@ -87,7 +107,9 @@ def measure(h: int, w: int, args: argparse.Namespace) -> dict[str, dict]:
     obs = batch(h, w, 1, args.chunk_size, args.device, with_action=False)
     for kind in KINDS:
         torch.manual_seed(0)
-        policy = policies[kind] = make_policy(kind, h, w, args.chunk_size, args.device)
+        policy = policies[kind] = make_policy(
+            kind, h, w, args.chunk_size, args.device, overrides(args.vib), overrides(args.act)
+        )
         optimizer = torch.optim.AdamW(policy.get_optim_params(), lr=1e-5)
 
         def train_step(policy=policy, optimizer=optimizer):
@@ -153,6 +175,8 @@ def main() -> None:
     parser.add_argument("--latency_repeats", type=int, default=20)
     parser.add_argument("--queue_repeats", type=int, default=3, help="chunks timed in queue mode")
     parser.add_argument("--output", type=Path, default=None, help="also write the table to this file")
+    parser.add_argument("--vib", action="append", default=[], metavar="KEY=VALUE", help="a VIBConfig field")
+    parser.add_argument("--act", action="append", default=[], metavar="KEY=VALUE", help="an ACTConfig field")
     args = parser.parse_args()
 
     rows = []

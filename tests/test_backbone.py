@@ -53,6 +53,33 @@ def test_dilation_is_refused_for_basic_block_resnets():
     assert trunk(torch.rand(1, 3, 64, 64))["feature_map"].shape[-2:] == (4, 4)  # stride 16, not 32
 
 
+@pytest.mark.parametrize(("name", "channels"), [("resnet18", 256), ("resnet50", 1024)])
+def test_a_layer3_trunk_keeps_a_grid_twice_as_fine_and_drops_layer4(name, channels):
+    trunk, reported = build_resnet_trunk(name, None, "group_norm", last_layer="layer3")
+    feature_map = trunk(torch.rand(1, 3, 96, 128))["feature_map"]
+    assert feature_map.shape[1:] == (channels, 6, 8) and reported == channels  # stride 16: 6x8 at 96x128
+    assert not any(key.startswith("layer4") for key in trunk.state_dict())
+
+
+def test_a_layer3_policy_saves_and_loads_its_trunk(tmp_path):
+    policy = VIBPolicy(make_config(cameras={"top": (3, 96, 128)}, backbone_layer="layer3"))
+    assert (policy.model.encoder.pool._in_h, policy.model.encoder.pool._in_w) == (6, 8)
+    policy.eval().save_pretrained(tmp_path)
+    loaded = VIBPolicy.from_pretrained(tmp_path)
+    assert loaded.config.backbone_layer == "layer3"
+    obs = make_batch(policy.config, with_action=False, seed=9)
+    torch.testing.assert_close(loaded.predict_action_chunk(obs), policy.predict_action_chunk(obs))
+
+
+def test_unknown_or_contradicting_trunk_layers_are_refused():
+    with pytest.raises(VIBConfigError, match="backbone_layer"):
+        make_config(backbone_layer="layer5")
+    with pytest.raises(VIBConfigError, match=r"dilates layer4.*backbone_layer=layer3"):
+        make_config(vision_backbone="resnet50", replace_final_stride_with_dilation=True, backbone_layer="layer3")
+    with pytest.raises(ValueError, match="last layer"):
+        build_resnet_trunk("resnet18", None, "group_norm", last_layer="layer2")
+
+
 def test_unknown_norm():
     with pytest.raises(VIBConfigError, match="backbone_norm"):
         make_config(backbone_norm="layer_norm")

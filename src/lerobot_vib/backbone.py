@@ -1,4 +1,4 @@
-"""The image trunk: a torchvision ResNet up to layer4, its normalization layers and its initial weights.
+"""The image trunk: a torchvision ResNet up to layer3 or layer4, its normalization layers and its initial weights.
 
 A ResNet's normalization layers decide whether it can be trained from scratch (`backbone_norm`):
 
@@ -27,6 +27,7 @@ from torchvision.models._utils import IntermediateLayerGetter
 from torchvision.ops.misc import FrozenBatchNorm2d
 
 BACKBONE_NORMS = ("frozen_bn", "batch_norm", "group_norm")
+BACKBONE_LAYERS = ("layer3", "layer4")
 GROUP_NORM_CHANNELS = 16  # channels per group, as Diffusion Policy's trunk
 WEIGHT_FILE_SUFFIXES = (".pth", ".pt", ".bin", ".safetensors")
 
@@ -50,9 +51,14 @@ def is_weight_file(weights: str | None) -> bool:
 
 
 def build_resnet_trunk(
-    name: str, weights: str | None, norm: str, dilate_last_stage: bool = False
+    name: str, weights: str | None, norm: str, dilate_last_stage: bool = False, last_layer: str = "layer4"
 ) -> tuple[nn.Module, int]:
-    """A torchvision ResNet up to layer4 (feature map under the key "feature_map"). Returns (trunk, channels)."""
+    """A torchvision ResNet up to `last_layer` (feature map under the key "feature_map").
+
+    Returns (trunk, channels of the feature map). Stages after `last_layer` are dropped, weights included.
+    """
+    if last_layer not in BACKBONE_LAYERS:
+        raise ValueError(f"The trunk's last layer must be one of {BACKBONE_LAYERS}, got {last_layer!r}.")
     if not hasattr(torchvision.models, name):
         raise ValueError(f"torchvision has no model {name!r}.")
     kwargs = dict(replace_stride_with_dilation=[False, False, dilate_last_stage], norm_layer=norm_layer(norm))
@@ -69,8 +75,9 @@ def build_resnet_trunk(
                 "(`--policy.pretrained_backbone_weights=/path/to/resnet18.pth`, a torchvision state dict) or "
                 "train the trunk from scratch with `--policy.pretrained_backbone_weights=null`."
             ) from e
-    trunk = IntermediateLayerGetter(resnet, return_layers={"layer4": "feature_map"})
-    return trunk, resnet.fc.in_features
+    trunk = IntermediateLayerGetter(resnet, return_layers={last_layer: "feature_map"})
+    channels = resnet.fc.in_features if last_layer == "layer4" else resnet.fc.in_features // 2
+    return trunk, channels
 
 
 def load_weight_file(resnet: nn.Module, path: Path, name: str) -> None:

@@ -11,7 +11,7 @@ from lerobot.optim import AdamWConfig
 from lerobot.optim.schedulers import CosineAnnealingWithWarmupSchedulerConfig
 from lerobot.utils.constants import ACTION, OBS_STATE
 
-from .backbone import BACKBONE_NORMS
+from .backbone import BACKBONE_LAYERS, BACKBONE_NORMS
 
 IMAGE_POOLINGS = ("spatial_softmax", "avg")
 POSITION_EMBEDDINGS = ("learned", "sinusoidal")
@@ -161,6 +161,10 @@ class VIBConfig(PreTrainedConfig):
             value is saved with the checkpoint, so loading builds the same layers.
         replace_final_stride_with_dilation: Replace the ResNet's final stride with a dilation (ACT's option);
             doubles the feature map size. Only ResNets of bottleneck blocks (resnet50 and up) can dilate.
+        backbone_layer: The ResNet stage whose feature map is pooled: "layer4" (ACT's, stride 32) or "layer3"
+            (stride 16: twice the map's height and width, and for resnet18 a quarter of the trunk's weights
+            and about a quarter less compute). At small images layer4's map is a few cells (3x4 at 96x128),
+            coarse for placing a gripper within a centimetre; layer3 keeps a finer grid.
         image_pooling: How a camera's ResNet feature map becomes a feature vector.
             "spatial_softmax" (default): expected image coordinates of `spatial_softmax_num_keypoints`
             learned keypoints (LeRobot's Diffusion Policy layer), which keeps *where* things are;
@@ -202,6 +206,10 @@ class VIBConfig(PreTrainedConfig):
         scheduler_warmup_steps: None (ACT's preset): a constant learning rate. An integer: LeRobot's
             `cosine_annealing_with_warmup`, a linear warmup over this many steps and then a cosine decay to zero
             at the run's last step, so the last checkpoint is the settled one (from-scratch recipes).
+        ema_decay: None (ACT's way): the policy acts with the last trained weights. A number in (0, 1): it
+            keeps an exponential moving average of the weights (`ema.py`; about the last tenth of training
+            early on, at most `1 / (1 - ema_decay)` steps later) and acts, calibrates and saves with it in eval
+            mode; training still updates the raw weights. Checkpoints then hold both.
     """
 
     # Input / output structure.
@@ -223,6 +231,7 @@ class VIBConfig(PreTrainedConfig):
     pretrained_backbone_weights: str | None = "ResNet18_Weights.IMAGENET1K_V1"
     backbone_norm: str | None = None
     replace_final_stride_with_dilation: bool = False
+    backbone_layer: str = "layer4"
     image_pooling: str = "spatial_softmax"
     spatial_softmax_num_keypoints: int = 32
     mlp_hidden_dim: int = 512
@@ -257,6 +266,7 @@ class VIBConfig(PreTrainedConfig):
     optimizer_weight_decay: float = 1e-4
     optimizer_lr_backbone: float = 1e-5
     scheduler_warmup_steps: int | None = None
+    ema_decay: float | None = None
 
     def __post_init__(self):
         super().__post_init__()
@@ -267,6 +277,13 @@ class VIBConfig(PreTrainedConfig):
             raise VIBConfigError(
                 f"`replace_final_stride_with_dilation=true` needs a ResNet of bottleneck blocks (resnet50 and "
                 f"larger); {self.vision_backbone} has none. Set it to false, or change `vision_backbone`."
+            )
+        if self.backbone_layer not in BACKBONE_LAYERS:
+            raise VIBConfigError(f"`backbone_layer` must be one of {BACKBONE_LAYERS}, got {self.backbone_layer!r}.")
+        if self.replace_final_stride_with_dilation and self.backbone_layer != "layer4":
+            raise VIBConfigError(
+                "`replace_final_stride_with_dilation=true` dilates layer4, which "
+                f"`backbone_layer={self.backbone_layer}` leaves out. Set one of them back."
             )
         if self.backbone_norm is None:
             self.backbone_norm = "frozen_bn" if self.pretrained_backbone_weights else SCRATCH_BACKBONE_NORM
@@ -296,6 +313,8 @@ class VIBConfig(PreTrainedConfig):
             )
         if self.dim_model % self.n_heads != 0:
             raise VIBConfigError(f"`dim_model` ({self.dim_model}) must be divisible by `n_heads` ({self.n_heads}).")
+        if self.ema_decay is not None and not 0.0 < self.ema_decay < 1.0:
+            raise VIBConfigError(f"`ema_decay` must be in (0, 1) or null, got {self.ema_decay}.")
         if self.scheduler_warmup_steps is not None and self.scheduler_warmup_steps < 0:
             raise VIBConfigError(f"`scheduler_warmup_steps` must be >= 0 or null, got {self.scheduler_warmup_steps}.")
         if self.beta < 0:

@@ -37,6 +37,7 @@ from .backbone import build_resnet_trunk
 from .bottleneck import GaussianBottleneck, Posterior
 from .calibration import RateTracker, mean_plus_2std_gamma
 from .configuration_vib import VIBConfig
+from .ema import make_ema
 from .runtime import ChunkRuntime
 from .safety import RobotUnits, SafetyAction, SafetyMonitor
 
@@ -71,7 +72,11 @@ def build_encoder_trunk(config: VIBConfig) -> tuple[nn.Module, int]:
     """The configured ResNet trunk (`backbone.py`). Returns (trunk, channels)."""
     weights = None if _SKIP_PRETRAINED_BACKBONE.get() else config.pretrained_backbone_weights
     return build_resnet_trunk(
-        config.vision_backbone, weights, config.backbone_norm, config.replace_final_stride_with_dilation
+        config.vision_backbone,
+        weights,
+        config.backbone_norm,
+        config.replace_final_stride_with_dilation,
+        config.backbone_layer,
     )
 
 
@@ -239,6 +244,8 @@ class VIBPolicy(PreTrainedPolicy):
         if ignored := sorted(set(config.input_features) - set(self._used_inputs)):
             logger.warning("VIB ignores these input features: %s", ignored)
         self.model = VIB(config)
+        # The averaged weights the policy acts with (`ema.py`); the optimizer never sees them.
+        self.ema = make_ema(self.model, config.ema_decay) if config.ema_decay is not None else None
         self.rate_tracker = RateTracker(config.rate_momentum)
         units_features = {ACTION: config.action_feature}
         if config.robot_state_feature:
@@ -270,6 +277,18 @@ class VIBPolicy(PreTrainedPolicy):
             if p.requires_grad:
                 (backbone if name.startswith("model.encoder.backbone") else rest).append(p)
         return [{"params": rest}, {"params": backbone, "lr": self.config.optimizer_lr_backbone}]
+
+    @property
+    def network(self) -> VIB:
+        """The weights the policy acts with: the moving average in eval mode when `ema_decay` is set."""
+        if self.ema is not None and not self.training:
+            return self.ema.module
+        return self.model
+
+    def update(self) -> None:
+        """After each optimizer step (LeRobot's training loop calls it): fold the new weights into the average."""
+        if self.ema is not None:
+            self.ema.update_parameters(self.model)
 
     def reset(self) -> None:
         """Call whenever the environment is reset."""
@@ -382,7 +401,7 @@ class VIBPolicy(PreTrainedPolicy):
         """(B, chunk_size, action_dim) actions for a normalized observation batch; sets `last_rate` (B,)."""
         self.eval()
         self._check_observation(batch)
-        out = self.model(batch, sample=self.config.sample_latent_at_inference)
+        out = self.network(batch, sample=self.config.sample_latent_at_inference)
         self.last_rate = out.rate
         return out.actions
 
@@ -416,7 +435,7 @@ class VIBPolicy(PreTrainedPolicy):
             if posterior is None:
                 raise RuntimeError("A chunk must be planned but the observation was not encoded.")
             z = posterior.sample() if self.config.sample_latent_at_inference else posterior.mean
-            return self.model.decoder(z)
+            return self.network.decoder(z)
 
         action, decision = self.runtime.step(
             u, decode, lambda last: self._safety_action(batch, batch_size, last), unknown=~obs_finite
@@ -443,8 +462,9 @@ class VIBPolicy(PreTrainedPolicy):
         )
 
     def _encode(self, batch: dict[str, Tensor]) -> tuple[Posterior, Tensor]:
-        posterior = self.model.encode(batch)
-        return posterior, self.model.bottleneck.rate(posterior)
+        network = self.network
+        posterior = network.encode(batch)
+        return posterior, network.bottleneck.rate(posterior)
 
     def _safety_action(self, batch: dict[str, Tensor], batch_size: int, last_command: Tensor | None) -> Tensor:
         """`hold` (the last command) or a bounded step towards `home`, in the policy's normalized space."""
@@ -474,7 +494,7 @@ class VIBPolicy(PreTrainedPolicy):
         """Loss L = L1 + beta * R. `reduction="none"` returns the per-sample loss (LeRobot's sample weighting)."""
         batch_size = self._check_observation(batch)
         self._check_training_batch(batch, batch_size)
-        out = self.model(batch, sample=self.training)
+        out = self.network(batch, sample=self.training)
 
         abs_err = F.l1_loss(out.actions, batch[ACTION], reduction="none")
         if "action_is_pad" in batch:

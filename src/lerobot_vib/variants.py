@@ -80,7 +80,7 @@ def vib_score(vib: VIBPolicy) -> Callable[[dict[str, Tensor]], tuple[Tensor, Ten
     @torch.no_grad()
     def score(batch: dict[str, Tensor]) -> tuple[Tensor, Tensor]:
         vib.eval()
-        rate = vib.model.bottleneck.rate(vib.model.encode(batch))
+        _, rate = vib._encode(batch)
         return rate, rate / r_bar
 
     return score
