@@ -162,9 +162,10 @@ class VIBConfig(PreTrainedConfig):
         replace_final_stride_with_dilation: Replace the ResNet's final stride with a dilation (ACT's option);
             doubles the feature map size. Only ResNets of bottleneck blocks (resnet50 and up) can dilate.
         backbone_layer: The ResNet stage whose feature map is pooled: "layer4" (ACT's, stride 32) or "layer3"
-            (stride 16: twice the map's height and width, and for resnet18 a quarter of the trunk's weights
-            and about a quarter less compute). At small images layer4's map is a few cells (3x4 at 96x128),
-            coarse for placing a gripper within a centimetre; layer3 keeps a finer grid.
+            (stride 16: twice the map's height and width, and for resnet18 a quarter of the trunk's weights;
+            faster to train, `benchmarks/results/trunk_layer_cpu_2core/`). At small images layer4's map is a
+            few cells (3x4 at 96x128), coarse for placing a gripper within a centimetre; layer3 keeps a finer
+            grid.
         image_pooling: How a camera's ResNet feature map becomes a feature vector.
             "spatial_softmax" (default): expected image coordinates of `spatial_softmax_num_keypoints`
             learned keypoints (LeRobot's Diffusion Policy layer), which keeps *where* things are;
@@ -209,7 +210,8 @@ class VIBConfig(PreTrainedConfig):
         ema_decay: None (ACT's way): the policy acts with the last trained weights. A number in (0, 1): it
             keeps an exponential moving average of the weights (`ema.py`; about the last tenth of training
             early on, at most `1 / (1 - ema_decay)` steps later) and acts, calibrates and saves with it in eval
-            mode; training still updates the raw weights. Checkpoints then hold both.
+            mode; training still updates the raw weights. Checkpoints then hold both. The running R_bar from
+            training is the raw weights' rate: run `lerobot-vib-calibrate` before trusting u or gamma.
     """
 
     # Input / output structure.

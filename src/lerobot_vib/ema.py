@@ -5,8 +5,8 @@ After every optimizer step t = 1, 2, ... (LeRobot's training loop calls `policy.
     theta_bar_1 = theta_1
     theta_bar_t = d_t * theta_bar_{t-1} + (1 - d_t) * theta_t,    d_t = min(decay, (1 + t) / (10 + t))
 
-The warm-up of d_t (Diffusion Policy's EMA has the same shape) keeps the first, random weights from
-lingering: early on the average spans about the last tenth of training, later `1 / (1 - decay)` steps.
+The warm-up of d_t keeps the first, random weights from lingering: early on the average spans about the last
+tenth of training, later `1 / (1 - decay)` steps.
 Buffers (batch-norm statistics) are averaged the same way.
 
 Why: with a constant learning rate and small batches, one checkpoint's success rate swings by tens of points
