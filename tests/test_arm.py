@@ -7,6 +7,7 @@ import json
 import sys
 from pathlib import Path
 
+import mujoco
 import numpy as np
 import pytest
 from lerobot.datasets.lerobot_dataset import LeRobotDataset
@@ -123,11 +124,13 @@ def test_plan_ends_in_a_hold_above_the_table():
 # --- perturbations ---------------------------------------------------------------------------------------
 
 
-def _frames(perturbation: PerturbationConfig, seed: int = 4, steps: int = 0, **kw) -> list[np.ndarray]:
-    env = ArmGraspEnv(observation_height=48, observation_width=64, perturbation=perturbation, **kw)
-    frames = [env.reset(seed=seed)[0]["pixels"]["scene"]]
+def _frames(
+    perturbation: PerturbationConfig, seed: int = 4, steps: int = 0, camera: str = "scene", **kw
+) -> list[np.ndarray]:
+    env = ArmGraspEnv(observation_height=48, observation_width=64, perturbation=perturbation, cameras=(camera,), **kw)
+    frames = [env.reset(seed=seed)[0]["pixels"][camera]]
     for _ in range(steps):
-        frames.append(env.step(np.append(HOME, 1.0))[0]["pixels"]["scene"])
+        frames.append(env.step(np.append(HOME, 1.0))[0]["pixels"][camera])
     env.close()
     return frames
 
@@ -165,14 +168,47 @@ def _red_pixels(image: np.ndarray) -> int:
     return int(((r > 120) & (g < 60) & (b < 60)).sum())
 
 
+@pytest.mark.parametrize("camera", ["scene", "overhead"])
+def test_the_occluder_hides_the_block_from_the_fixed_camera_observed(camera):
+    occlusion = PerturbationConfig(occlusion=True, occlusion_start=0, occlusion_duration=5)
+    assert _red_pixels(_frames(PerturbationConfig(), camera=camera)[0]) > 3
+    assert _red_pixels(_frames(occlusion, camera=camera)[0]) == 0
+
+
+def _block_pixel(env: ArmGraspEnv, x: float, y: float, camera: str) -> np.ndarray:
+    """Where the block's red pixels are centred in `camera` with the block placed at (x, y), yaw 0."""
+    q = env._block_qadr
+    env.data.qpos[q : q + 7] = [x, y, env.block_half, 1, 0, 0, 0]
+    mujoco.mj_forward(env.model, env.data)
+    r, g, b = env._observation()["pixels"][camera].astype(int).transpose(2, 0, 1)
+    rows, cols = np.nonzero((r > 120) & (g < 60) & (b < 60))
+    return np.array([rows.mean(), cols.mean()])
+
+
+def test_the_overhead_camera_resolves_the_blocks_distance_from_the_arm_better_than_the_scene_camera():
+    """The grasps that miss close the fingers off the block along x, the scene camera's depth axis."""
+    env = ArmGraspEnv(cameras=("scene", "overhead"), workspace="near")
+    env.reset(seed=0)
+    shift = {}
+    for camera in ("scene", "overhead"):
+        centre = _block_pixel(env, 0.39, 0.0, camera)
+        shift[camera] = [
+            np.linalg.norm(_block_pixel(env, 0.39 + dx, dy, camera) - centre) for dx, dy in ((0.05, 0), (0, 0.05))
+        ]
+    env.close()
+    assert shift["overhead"][0] > 1.4 * shift["scene"][0]  # along x, towards and away from the arm
+    assert shift["overhead"][1] > shift["scene"][1]  # along y, across
+
+
 def test_unseen_block_is_not_the_red_training_block():
     assert _red_pixels(_frames(PerturbationConfig())[0]) > 3
     assert _red_pixels(_frames(PerturbationConfig(unseen_block=True))[0]) == 0
 
 
-def test_camera_shake_moves_the_view():
-    clean = _frames(PerturbationConfig())[0].astype(int)
-    assert np.abs(clean - _frames(PerturbationConfig(camera_shake=0.02))[0]).mean() > 0.5
+@pytest.mark.parametrize("camera", ["scene", "overhead"])
+def test_camera_shake_moves_the_view(camera):
+    clean = _frames(PerturbationConfig(), camera=camera)[0].astype(int)
+    assert np.abs(clean - _frames(PerturbationConfig(camera_shake=0.02), camera=camera)[0]).mean() > 0.5
 
 
 def test_aloha_env_takes_image_perturbations_and_refuses_scene_ones():

@@ -31,7 +31,7 @@ class RecordSimConfig:
     root: Where to write the dataset (default $HF_LEROBOT_HOME/<repo_id>).
     image_height, image_width: Camera resolution (default: gym-aloha's 480x640 for ALOHA, 96x128 for the arm).
     cameras: MuJoCo cameras to record, each as observation.images.<camera> (default: top for ALOHA, scene for
-        the arm, which also has wrist).
+        the arm, which also has overhead and wrist).
     workspace: The arm only: the ranges the block is placed in, `wide` (default) or `near` (see
         `lerobot_vib.sim.arm_env`). `--env.dataset_root` makes `lerobot-eval` use the recording's.
     shadows: Render shadows as gym-aloha does; false is about 3x faster on a CPU but the images differ.

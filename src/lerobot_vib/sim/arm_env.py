@@ -31,6 +31,7 @@ from .arm_scene import (
     BLOCK_RGBA,
     CAMERAS,
     FINGER_TRAVEL,
+    FIXED_CAMERAS,
     HOME,
     JOINTS,
     OCCLUDER_PARKED,
@@ -45,7 +46,12 @@ EPISODE_LENGTH = 100
 SUBSTEPS = 25  # 0.002 s physics steps per 0.05 s control step
 LIFT_SUCCESS = 0.04
 HOLD_STEPS = 5
-OCCLUDER_AT = np.array([0.7, 0.0, 0.3])  # between the scene camera and the workspace
+# The occluder's pose (position, quaternion) for each fixed camera: about 45% of the way from the camera to
+# the workspace's centre, its broad face towards the camera, so it hides the block and the gripper.
+OCCLUDER_POSES = {
+    "scene": (np.array([0.7, 0.0, 0.3]), np.array([1.0, 0.0, 0.0, 0.0])),
+    "overhead": (np.array([0.636, 0.0, 0.488]), np.array([0.875, 0.0, -0.485, 0.0])),  # turned to its pitch
+}
 
 
 @dataclass(frozen=True)
@@ -119,8 +125,13 @@ class ArmGraspEnv(gym.Env):
         self.data = mujoco.MjData(self.model)
         self._renderers: dict[tuple[int, int], mujoco.Renderer] = {}
         self._ids()
-        self._cam_pos0 = self.model.cam_pos[self._scene_cam].copy()
-        self._cam_quat0 = self.model.cam_quat[self._scene_cam].copy()
+        # Shake and occlusion act on the fixed cameras observed (the scene camera if only the wrist is).
+        observed_fixed = [c for c in FIXED_CAMERAS if c in self.cameras] or ["scene"]
+        self._shaken = {c: self.model.camera(c).id for c in observed_fixed}
+        self._cam_pose0 = {
+            c: (self.model.cam_pos[i].copy(), self.model.cam_quat[i].copy()) for c, i in self._shaken.items()
+        }
+        self._occluder_pose = OCCLUDER_POSES[observed_fixed[0]]
         self.image_perturbation = ImagePerturbation(self.perturbation)
         self.scene = draw_scene_episode(self.perturbation, None)
         self.step_count = 0
@@ -146,7 +157,6 @@ class ArmGraspEnv(gym.Env):
         self._block_geom = m.geom("block").id
         self._finger_geoms = {m.body("finger_left").id, m.body("finger_right").id}
         self._occluder = m.body("occluder").mocapid[0]
-        self._scene_cam = m.camera("scene").id
 
     @property
     def task_description(self) -> str:
@@ -206,16 +216,21 @@ class ArmGraspEnv(gym.Env):
 
     def _place_scene_perturbations(self) -> None:
         occluded = self.scene.occluded(self.step_count)
-        self.data.mocap_pos[self._occluder] = OCCLUDER_AT if occluded else OCCLUDER_PARKED
-        if self.scene.shake > 0:
-            rng, amp = self.scene.rng, self.scene.shake
-            self.model.cam_pos[self._scene_cam] = self._cam_pos0 + rng.uniform(-amp, amp, 3)
-            turn = np.zeros(4)
-            mujoco.mju_axisAngle2Quat(turn, rng.normal(size=3) / np.sqrt(3) + 1e-9, rng.uniform(-10 * amp, 10 * amp))
-            mujoco.mju_mulQuat(self.model.cam_quat[self._scene_cam], self._cam_quat0, turn)
-        else:
-            self.model.cam_pos[self._scene_cam] = self._cam_pos0
-            self.model.cam_quat[self._scene_cam] = self._cam_quat0
+        pos, quat = self._occluder_pose
+        self.data.mocap_pos[self._occluder] = pos if occluded else OCCLUDER_PARKED
+        self.data.mocap_quat[self._occluder] = quat
+        for camera, cam in self._shaken.items():
+            pos0, quat0 = self._cam_pose0[camera]
+            if self.scene.shake > 0:
+                rng, amp = self.scene.rng, self.scene.shake
+                self.model.cam_pos[cam] = pos0 + rng.uniform(-amp, amp, 3)
+                turn = np.zeros(4)
+                axis = rng.normal(size=3) / np.sqrt(3) + 1e-9
+                mujoco.mju_axisAngle2Quat(turn, axis, rng.uniform(-10 * amp, 10 * amp))
+                mujoco.mju_mulQuat(self.model.cam_quat[cam], quat0, turn)
+            else:
+                self.model.cam_pos[cam] = pos0
+                self.model.cam_quat[cam] = quat0
 
     def _renderer(self, height: int, width: int) -> mujoco.Renderer:
         if (height, width) not in self._renderers:

@@ -11,8 +11,14 @@ real electric gripper). Every joint has a position actuator: `action` is the 6 j
 and the gripper opening in [0, 1] (0 closed, 1 open); `observation.state` is the same 7 numbers measured.
 Links have gravity compensation, as a real arm's controller has, so targets are tracked without sag.
 
-The block is a free body; the occluder is a mocap body without collisions that the env moves in front of
-the scene camera. Both are placed by the env, never here.
+Cameras: `scene`, fixed in front of the arm and looking at the table at about 35 degrees (the block's distance
+from the arm runs along the image's depth); `overhead`, fixed above the front edge of the table looking down
+at 58 degrees with a narrower field of view, so both of the block's table coordinates move it across the image
+(at 96x128, a block at the workspace's centre moves 1.8 px per cm along x and 2.0 along y there, against 1.1
+and 1.6 in `scene`); `wrist`, on the hand.
+
+The block is a free body; the occluder is a mocap body without collisions that the env moves between a fixed
+camera and the workspace. Both are placed by the env, never here.
 """
 
 from __future__ import annotations
@@ -22,7 +28,8 @@ import numpy as np
 
 JOINTS = ("base_yaw", "shoulder_pitch", "elbow_pitch", "forearm_roll", "wrist_pitch", "wrist_roll")
 STATE_NAMES = [*JOINTS, "gripper"]
-CAMERAS = ("scene", "wrist")
+CAMERAS = ("scene", "wrist", "overhead")
+FIXED_CAMERAS = ("scene", "overhead")
 FINGER_TRAVEL = 0.035  # each finger's opening at gripper = 1
 BLOCK_HALF = 0.02  # the training block: a 4 cm red cube
 BLOCK_RGBA = (0.85, 0.1, 0.1, 1.0)
@@ -59,6 +66,7 @@ _XML = """
     <geom name="floor" type="plane" size="2 2 0.05" pos="0 0 -0.75" material="floor"/>
     <geom name="table" type="box" size="0.45 0.45 0.02" pos="0.35 0 -0.02" material="table"/>
     <camera name="scene" pos="0.95 0 0.55" xyaxes="0 1 0 -0.57 0 0.822" fovy="45"/>
+    <camera name="overhead" pos="0.8 0 0.8" xyaxes="0 1 0 -0.848 0 0.530" fovy="30"/>
     <body name="base" pos="0 0 0">
       <geom type="cylinder" size="0.07 0.04" pos="0 0 0.04" rgba="0.25 0.25 0.28 1"/>
       <body name="link1" pos="0 0 0.08" gravcomp="1">

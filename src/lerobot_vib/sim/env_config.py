@@ -174,7 +174,8 @@ class ArmGraspEnvConfig(_RenderingEnv, EnvConfig):
 
     Args:
         observation_height, observation_width: Camera image size.
-        cameras: Any of `scene` (fixed, in front of the arm) and `wrist`.
+        cameras: Any of `scene` (fixed, in front of the arm), `overhead` (fixed, above the table's front edge,
+            looking down: the block's distance from the arm shows better than in `scene`) and `wrist`.
         shadows: Render shadows (cheap at this scene's size; `false` changes the images).
         workspace: The ranges the block is placed in per episode: `wide` (default) or `near` (`arm_env.WORKSPACES`).
         dataset_root: The root of a dataset recorded by `lerobot-vib-record-sim --task=grasp_block`: its image

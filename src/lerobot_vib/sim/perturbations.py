@@ -33,11 +33,12 @@ class PerturbationConfig:
         The paper's colour condition is 0.2.
     color_jitter_p: Probability that an episode is colour-jittered (when `color_jitter` > 0).
     black_images: Replace every camera image by a black one: a control showing whether a policy needs vision.
-    camera_shake: Scene camera shake amplitude: a uniform offset of up to this many metres along each axis
-        and up to 10x this many radians about each axis, drawn every step. 0 is off. Simulated arm only.
+    camera_shake: Fixed-camera shake amplitude: a uniform offset of up to this many metres along each axis
+        and up to 10x this many radians about each axis, drawn every step for each fixed camera observed
+        (`scene`, `overhead`). 0 is off. Simulated arm only.
     unseen_block: Replace the red 4 cm training block by one of another colour and size. Simulated arm only.
-    occlusion: Put a board between the scene camera and the workspace for part of the episode. Simulated
-        arm only.
+    occlusion: Put a board between the first fixed camera observed (`scene`, else `overhead`) and the
+        workspace for part of the episode. Simulated arm only.
     occlusion_start: First occluded step; drawn from [10, 40) per episode when not given.
     occlusion_duration: Occluded steps; drawn from [15, 40) per episode when not given.
     """
