@@ -4,8 +4,10 @@ Each variant is trained by `lerobot-train` (VIB from the preset, ACT with the sa
 budget: `benchmark.act_recipe_flags`), saving a checkpoint every `save_freq` steps. Every checkpoint is then
 evaluated by `lerobot-eval` on `--env.type=vib_arm` with the recording's settings, on the same episode seeds;
 the final VIB checkpoint also with black images (a policy that ignores vision would not notice). Wall time of
-a checkpoint: its file time minus the first timestamp of its training log. Everything is saved as it
-finishes, so a stopped run resumes (`lerobot-train --resume=true` for an unfinished training). The training
+a checkpoint: the time its training processes ran until its file was written, read from the timestamps of the
+training log; a run that was stopped and resumed is charged for each of its runs, up to its last log line,
+and not for the time between them. Everything is saved as it finishes, so a stopped run resumes
+(`lerobot-train --resume=true` for an unfinished training). The training
 commands that were run are kept in `<out>/<variant>/command.txt` and listed in the report.
 
     python benchmarks/arm_learning.py --dataset_root data/arm_grasp_block --out outputs/arm_learning \
@@ -101,12 +103,32 @@ def evaluate(checkpoint: Path, args, out: Path, extra: list[str] = ()) -> dict:
     return dict(success=round(overall["pc_success"] * overall["n_episodes"] / 100), n=overall["n_episodes"])
 
 
-def log_start(log: Path) -> float:
-    """The first timestamp LeRobot's training log prints (`INFO 2026-11-22 21:28:56 ...`)."""
-    for line in log.read_text(errors="replace").splitlines():
-        if line.startswith("INFO 2"):
-            return datetime.strptime(" ".join(line.split()[1:3]), "%Y-%m-%d %H:%M:%S").timestamp()
-    raise ValueError(f"No timestamp in {log}.")
+def training_runs(log: Path) -> list[tuple[float, float]]:
+    """(first, last) timestamp of each lerobot-train run in the log (`INFO 2026-11-22 21:28:56 ...` lines)."""
+    runs: list[list[float]] = []
+    for line in log.read_text(errors="replace").replace("\r", "\n").splitlines():
+        start = line.find("INFO 2")
+        if start < 0:
+            continue
+        fields = line[start:].split(maxsplit=4)
+        stamp = datetime.strptime(" ".join(fields[1:3]), "%Y-%m-%d %H:%M:%S").timestamp()
+        # Every lerobot-train run opens its log with its configuration as a dict: `... train.py:272 {'batch_size'`.
+        if not runs or (len(fields) > 4 and fields[4].startswith("{")):
+            runs.append([stamp, stamp])
+        runs[-1][1] = stamp
+    if not runs:
+        raise ValueError(f"No timestamp in {log}.")
+    return [(first, last) for first, last in runs]
+
+
+def training_seconds(runs: list[tuple[float, float]], until: float) -> float:
+    """Seconds of training up to time `until`: the runs before it in full, the one it falls in up to it."""
+    spent = 0.0
+    for first, last in runs:
+        if until <= last:
+            return spent + max(0.0, until - first)
+        spent += last - first
+    return spent + until - runs[-1][1]  # written after the last log line
 
 
 def main() -> None:
@@ -138,13 +160,13 @@ def main() -> None:
     rows = []
     for variant in args.variants:
         train_dir = args.out / variant / "train" if args.eval_only else train(variant, args.preset, preset, args)
-        start = log_start(args.out / variant / "train.log")
+        runs = training_runs(args.out / variant / "train.log")
         checkpoints = sorted(
             (c for c in (train_dir / "checkpoints").iterdir() if c.name.isdigit()), key=lambda c: int(c.name)
         )
         for ckpt in checkpoints:
             model = ckpt / "pretrained_model"
-            wall = (model / "model.safetensors").stat().st_mtime - start
+            wall = training_seconds(runs, (model / "model.safetensors").stat().st_mtime)
             result = evaluate(model, args, args.out / variant / f"eval_{ckpt.name}")
             rows.append(dict(variant=variant, step=int(ckpt.name), wall_s=wall, images="clean", **result))
             print(f"{variant} step {ckpt.name}: {result['success']}/{result['n']}", flush=True)

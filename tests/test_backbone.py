@@ -61,6 +61,14 @@ def test_a_layer3_trunk_keeps_a_grid_twice_as_fine_and_drops_layer4(name, channe
     assert not any(key.startswith("layer4") for key in trunk.state_dict())
 
 
+@pytest.mark.parametrize(("name", "channels"), [("resnet18", 128), ("resnet50", 512)])
+def test_a_layer2_trunk_keeps_a_grid_four_times_as_fine_and_drops_layer3(name, channels):
+    trunk, reported = build_resnet_trunk(name, None, "group_norm", last_layer="layer2")
+    feature_map = trunk(torch.rand(1, 3, 96, 128))["feature_map"]
+    assert feature_map.shape[1:] == (channels, 12, 16) and reported == channels  # stride 8
+    assert not any(key.startswith(("layer3", "layer4")) for key in trunk.state_dict())
+
+
 def test_a_layer3_policy_saves_and_loads_its_trunk(tmp_path):
     policy = VIBPolicy(make_config(cameras={"top": (3, 96, 128)}, backbone_layer="layer3"))
     assert (policy.model.encoder.pool._in_h, policy.model.encoder.pool._in_w) == (6, 8)
@@ -77,7 +85,7 @@ def test_unknown_or_contradicting_trunk_layers_are_refused():
     with pytest.raises(VIBConfigError, match=r"dilates layer4.*backbone_layer=layer3"):
         make_config(vision_backbone="resnet50", replace_final_stride_with_dilation=True, backbone_layer="layer3")
     with pytest.raises(ValueError, match="last layer"):
-        build_resnet_trunk("resnet18", None, "group_norm", last_layer="layer2")
+        build_resnet_trunk("resnet18", None, "group_norm", last_layer="layer1")
 
 
 def test_unknown_norm():

@@ -1,4 +1,4 @@
-"""The image trunk: a torchvision ResNet up to layer3 or layer4, its normalization layers and its initial weights.
+"""The image trunk: a torchvision ResNet up to layer2, 3 or 4, its normalization layers and its initial weights.
 
 A ResNet's normalization layers decide whether it can be trained from scratch (`backbone_norm`):
 
@@ -27,7 +27,7 @@ from torchvision.models._utils import IntermediateLayerGetter
 from torchvision.ops.misc import FrozenBatchNorm2d
 
 BACKBONE_NORMS = ("frozen_bn", "batch_norm", "group_norm")
-BACKBONE_LAYERS = ("layer3", "layer4")
+BACKBONE_LAYERS = ("layer2", "layer3", "layer4")
 GROUP_NORM_CHANNELS = 16  # channels per group, as Diffusion Policy's trunk
 WEIGHT_FILE_SUFFIXES = (".pth", ".pt", ".bin", ".safetensors")
 
@@ -76,7 +76,8 @@ def build_resnet_trunk(
                 "train the trunk from scratch with `--policy.pretrained_backbone_weights=null`."
             ) from e
     trunk = IntermediateLayerGetter(resnet, return_layers={last_layer: "feature_map"})
-    channels = resnet.fc.in_features if last_layer == "layer4" else resnet.fc.in_features // 2
+    # Each stage doubles the channels of the one before; layer4's are the classifier's input.
+    channels = resnet.fc.in_features // 2 ** (len(BACKBONE_LAYERS) - 1 - BACKBONE_LAYERS.index(last_layer))
     return trunk, channels
 
 

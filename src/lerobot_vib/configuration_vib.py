@@ -161,11 +161,12 @@ class VIBConfig(PreTrainedConfig):
             value is saved with the checkpoint, so loading builds the same layers.
         replace_final_stride_with_dilation: Replace the ResNet's final stride with a dilation (ACT's option);
             doubles the feature map size. Only ResNets of bottleneck blocks (resnet50 and up) can dilate.
-        backbone_layer: The ResNet stage whose feature map is pooled: "layer4" (ACT's, stride 32) or "layer3"
+        backbone_layer: The ResNet stage whose feature map is pooled: "layer4" (ACT's, stride 32), "layer3"
             (stride 16: twice the map's height and width, and for resnet18 a quarter of the trunk's weights;
-            faster to train, `benchmarks/results/trunk_layer_cpu_2core/`). At small images layer4's map is a
-            few cells (3x4 at 96x128), coarse for placing a gripper within a centimetre; layer3 keeps a finer
-            grid.
+            faster to train, `benchmarks/results/trunk_layer_cpu_2core/`) or "layer2" (stride 8, a sixteenth
+            of the weights, a receptive field of about 100 pixels). At small images layer4's map is a few cells
+            (3x4 at 96x128), coarse for placing a gripper within a centimetre; layer3 and layer2 keep finer
+            grids (6x8 and 12x16).
         image_pooling: How a camera's ResNet feature map becomes a feature vector.
             "spatial_softmax" (default): expected image coordinates of `spatial_softmax_num_keypoints`
             learned keypoints (LeRobot's Diffusion Policy layer), which keeps *where* things are;
