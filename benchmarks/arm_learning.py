@@ -8,7 +8,9 @@ a checkpoint: the time its training processes ran until its file was written, re
 training log; a run that was stopped and resumed is charged for each of its runs, up to its last log line,
 and not for the time between them. Everything is saved as it finishes, so a stopped run resumes
 (`lerobot-train --resume=true` for an unfinished training). The training
-commands that were run are kept in `<out>/<variant>/command.txt` and listed in the report.
+commands that were run are kept in `<out>/<variant>/command.txt` and listed in the report. `--eval_only
+--eval_seed=N` scores the same checkpoints on other episodes (`<out>/<variant>/seedN/`), to check a result
+that was chosen on the default seeds.
 
     python benchmarks/arm_learning.py --dataset_root data/arm_grasp_block --out outputs/arm_learning \
         --output benchmarks/results/arm_learning_cpu_2core.md
@@ -33,6 +35,14 @@ from lerobot_vib.scripts.benchmark import act_recipe_flags
 
 ROOT = Path(__file__).resolve().parents[1]
 BIN = Path(sys.executable).parent
+DEFAULT_EVAL_SEED = 100000
+
+
+def eval_dir(args, variant: str, name: str) -> Path:
+    """Where one evaluation is kept: evaluations on other episode seeds go to their own folder, so a cached
+    result is never read back for seeds it was not run on."""
+    base = args.out / variant
+    return base / name if args.eval_seed == DEFAULT_EVAL_SEED else base / f"seed{args.eval_seed}" / name
 
 
 def train_command(variant: str, preset_path: Path, preset: dict, args, out: Path) -> list[str]:
@@ -83,22 +93,27 @@ def _step(checkpoint: Path) -> int:
 
 def evaluate(checkpoint: Path, args, out: Path, extra: list[str] = ()) -> dict:
     info_path = out / "eval_info.json"
-    if not info_path.exists():
-        cmd = [
-            str(BIN / "lerobot-eval"),
-            f"--policy.path={checkpoint}",
-            "--policy.device=cpu",
-            "--env.type=vib_arm",
-            f"--env.dataset_root={args.dataset_root}",
-            f"--eval.n_episodes={args.eval_episodes}",
-            f"--eval.batch_size={args.eval_batch_size}",
-            "--eval.use_async_envs=false",
-            f"--seed={args.eval_seed}",
-            f"--output_dir={out}",
-            *extra,
-        ]
+    cmd = [
+        str(BIN / "lerobot-eval"),
+        f"--policy.path={checkpoint}",
+        "--policy.device=cpu",
+        "--env.type=vib_arm",
+        f"--env.dataset_root={args.dataset_root}",
+        f"--eval.n_episodes={args.eval_episodes}",
+        f"--eval.batch_size={args.eval_batch_size}",
+        "--eval.use_async_envs=false",
+        f"--seed={args.eval_seed}",
+        f"--output_dir={out}",
+        *extra,
+    ]
+    kept = out / "eval_command.txt"
+    if info_path.exists():
+        if kept.exists() and kept.read_text().strip() != " ".join(cmd):
+            raise SystemExit(f"{out} holds an evaluation made with other flags:\n{kept.read_text()}")
+    else:
         print(" ".join(cmd), flush=True)
         subprocess.run(cmd, check=True, capture_output=True, env={**os.environ, "MUJOCO_GL": "egl"})
+        kept.write_text(" ".join(cmd) + "\n")
     overall = json.loads(info_path.read_text())["overall"]
     return dict(success=round(overall["pc_success"] * overall["n_episodes"] / 100), n=overall["n_episodes"])
 
@@ -140,7 +155,7 @@ def main() -> None:
     p.add_argument("--seed", type=int, default=1000)
     p.add_argument("--eval_episodes", type=int, default=50)
     p.add_argument("--eval_batch_size", type=int, default=10)
-    p.add_argument("--eval_seed", type=int, default=100000)
+    p.add_argument("--eval_seed", type=int, default=DEFAULT_EVAL_SEED)
     p.add_argument("--out", type=Path, default=Path("outputs/arm_learning"))
     p.add_argument("--note", default="", help="a remark on how this run went, printed in the report")
     p.add_argument("--eval_only", action="store_true", help="evaluate the checkpoints saved so far; train nothing")
@@ -167,22 +182,22 @@ def main() -> None:
         for ckpt in checkpoints:
             model = ckpt / "pretrained_model"
             wall = training_seconds(runs, (model / "model.safetensors").stat().st_mtime)
-            result = evaluate(model, args, args.out / variant / f"eval_{ckpt.name}")
+            result = evaluate(model, args, eval_dir(args, variant, f"eval_{ckpt.name}"))
             rows.append(dict(variant=variant, step=int(ckpt.name), wall_s=wall, images="clean", **result))
             print(f"{variant} step {ckpt.name}: {result['success']}/{result['n']}", flush=True)
             for name, flags in inference.items() if variant == "vib" else ():
-                result = evaluate(model, args, args.out / variant / f"eval_{ckpt.name}_{name}", flags)
+                result = evaluate(model, args, eval_dir(args, variant, f"eval_{ckpt.name}_{name}"), flags)
                 rows.append(
                     dict(variant=variant, step=int(ckpt.name), wall_s=wall, images="clean", inference=name, **result)
                 )
                 print(f"{variant} step {ckpt.name} ({name}): {result['success']}/{result['n']}", flush=True)
         if variant == "vib":
-            blind = evaluate(
-                checkpoints[-1] / "pretrained_model", args, args.out / variant / f"eval_{checkpoints[-1].name}_black",
-                ["--env.perturbation.black_images=true"],
-            )  # fmt: skip
-            rows.append(dict(variant=variant, step=int(checkpoints[-1].name), wall_s=None, images="black", **blind))
-    (args.out / "results.json").write_text(json.dumps(rows, indent=2))
+            last = checkpoints[-1]
+            black = ["--env.perturbation.black_images=true"]
+            blind = evaluate(last / "pretrained_model", args, eval_dir(args, variant, f"eval_{last.name}_black"), black)
+            rows.append(dict(variant=variant, step=int(last.name), wall_s=None, images="black", **blind))
+    seeds = "" if args.eval_seed == DEFAULT_EVAL_SEED else f"_seed{args.eval_seed}"
+    (args.out / f"results{seeds}.json").write_text(json.dumps(rows, indent=2))
     emit(render(args, preset, rows), args.output)
     plot(rows, args)
 

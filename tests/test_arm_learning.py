@@ -1,9 +1,12 @@
-"""benchmarks/arm_learning.py: a checkpoint's training time is the time a trainer ran, resumes included."""
+"""benchmarks/arm_learning.py: a checkpoint's training time is the time a trainer ran, resumes included; an
+evaluation kept from an earlier run is read back only for the seeds and flags it was made with."""
 
 import importlib.util
+import json
 import sys
 from datetime import datetime
 from pathlib import Path
+from types import SimpleNamespace
 
 import pytest
 
@@ -44,3 +47,31 @@ def test_a_log_without_timestamps_is_an_error(tmp_path):
     log.write_text("Traceback (most recent call last):\n")
     with pytest.raises(ValueError, match="No timestamp"):
         arm_learning.training_runs(log)
+
+
+def _args(tmp_path, eval_seed: int):
+    return SimpleNamespace(
+        out=tmp_path, eval_seed=eval_seed, dataset_root=Path("data/arm"), eval_episodes=50, eval_batch_size=10
+    )
+
+
+def _cached_eval(folder: Path, pc_success: float) -> None:
+    folder.mkdir(parents=True)
+    (folder / "eval_info.json").write_text(json.dumps({"overall": {"pc_success": pc_success, "n_episodes": 50}}))
+
+
+def test_an_evaluation_on_other_seeds_is_not_read_from_the_default_seeds_folder(tmp_path):
+    default, fresh = _args(tmp_path, arm_learning.DEFAULT_EVAL_SEED), _args(tmp_path, 200000)
+    assert arm_learning.eval_dir(default, "vib", "eval_7000") != arm_learning.eval_dir(fresh, "vib", "eval_7000")
+    _cached_eval(arm_learning.eval_dir(default, "vib", "eval_7000"), 86.0)
+    result = arm_learning.evaluate(Path("ckpt"), default, arm_learning.eval_dir(default, "vib", "eval_7000"))
+    assert result == {"success": 43, "n": 50}
+
+
+def test_a_cached_evaluation_made_with_other_flags_is_an_error(tmp_path):
+    args = _args(tmp_path, arm_learning.DEFAULT_EVAL_SEED)
+    folder = arm_learning.eval_dir(args, "vib", "eval_7000")
+    _cached_eval(folder, 86.0)
+    (folder / "eval_command.txt").write_text("lerobot-eval --policy.path=ckpt --seed=5\n")
+    with pytest.raises(SystemExit, match="other flags"):
+        arm_learning.evaluate(Path("ckpt"), args, folder)

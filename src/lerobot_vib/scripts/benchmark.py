@@ -105,7 +105,7 @@ _GPU_PRESETS = {
     "aloha_fast/AlohaInsertion-v0": "vib_aloha_insertion.json",
 }
 PROFILES = {
-    # This 2-core CPU, the simulated arm: about two hours (arm_learning_cpu_2core.md: 44 min per 4000 steps).
+    # This 2-core CPU, the simulated arm: VIB's 7000 steps took 41 min (arm_learning_near_l2_ema_cpu_2core/).
     # On ALOHA (aloha_fast) the CPU recipe: 120x160, chunk 50, trunk from scratch.
     "cpu-small": Profile({"vib_arm": "vib_arm_sim.json", "aloha_fast": "vib_cpu.json"}, None, 50, 20, 20, 2000, "cpu"),
     # A lent H100 within 25 minutes of device time: the ALOHA preset shortened.
