@@ -117,6 +117,7 @@ def main() -> None:
             f"--policy.path={ckpt}",
             f"--rollouts={eval_dir / 'uncertainty_info.json'}",
             f"--conformal_alpha={ALPHA}",
+            "--threshold=max",  # one threshold for all steps: the time-indexed band needs twice the rollouts
             "--in_place=true",  # the calibrated copy this demo wrote above
         ]
     )

@@ -359,14 +359,14 @@ def test_occluder_stops_the_arm_which_holds_until_u_falls_and_then_resumes():
     cfg.calibration.rate_mean = 1.0  # u = rate
     stats = {"action": {"mean": torch.tensor([*HOME, 1.0]), "std": torch.full((7,), 0.02)}}
     policy = VIBPolicy(cfg, dataset_stats=stats).eval()
-    encode = policy._encode
+    encode = policy.observation_scores
 
     def darkness_score(batch):
-        posterior, _ = encode(batch)
+        posterior, scores = encode(batch)
         centre = batch["observation.images.scene"][:, :, 12:36, 16:48].mean(dim=(1, 2, 3)) * 255
-        return posterior, torch.clamp((100 - centre) / 10, min=0)
+        return posterior, {**scores, "rate": torch.clamp((100 - centre) / 10, min=0)}
 
-    policy._encode = darkness_score
+    policy.observation_scores = darkness_score
     env = ArmGraspEnv(
         observation_height=48, observation_width=64,
         perturbation=PerturbationConfig(occlusion=True, occlusion_start=5, occlusion_duration=6),

@@ -338,6 +338,7 @@ def test_calibrate_command_sets_gamma_from_rollouts_in_both_configs(tiny_checkpo
             f"--policy.path={ckpt}",
             f"--rollouts={info}",
             "--conformal_alpha=0.1",
+            "--threshold=max",
             "--in_place=true",
         ]
     )

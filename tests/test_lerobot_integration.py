@@ -91,8 +91,9 @@ def test_from_pretrained_loads_every_tensor_of_the_checkpoint(trained, aloha_lik
     saved = load_file(ckpt / "model.safetensors")
     state = loaded.state_dict()
     assert set(saved) == set(state)
-    for key, value in saved.items():
-        assert torch.equal(state[key], value), key
+    for key, value in saved.items():  # NaN marks what is not fitted yet (the scores before calibration)
+        assert torch.equal(state[key].isnan(), value.isnan()), key
+        assert torch.equal(state[key].nan_to_num(), value.nan_to_num()), key
 
     # The checkpoint's own processors normalize a dataset frame; the policy acts on it.
     pre, post = make_pre_post_processors(loaded.config, pretrained_path=str(ckpt))

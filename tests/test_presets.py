@@ -6,7 +6,7 @@ from pathlib import Path
 import pytest
 
 from helpers import BIN, run
-from lerobot_vib.configuration_vib import SCRATCH_BACKBONE_NORM
+from lerobot_vib.configuration_vib import DEFAULT_SCORE, SCRATCH_BACKBONE_NORM
 
 PRESETS = Path(__file__).parents[1] / "configs" / "policy"
 
@@ -49,8 +49,11 @@ def test_preset_trains_through_config_path(name, tiny_dataset_root, tmp_path):
     preset = json.loads((PRESETS / name).read_text())["policy"]
     saved = json.loads((out / "checkpoints/last/pretrained_model/config.json").read_text())
     overridden = {"type", "device", "pretrained_backbone_weights", "backbone_norm", "input_features", "output_features"}
+    overridden |= {"uncertainty_score"}  # None resolves when the policy is built
     for key in preset.keys() - overridden:
         assert saved[key] == preset[key], key
     # vib.json leaves the norm to follow the weights: without ImageNet weights the trunk trains from scratch.
     assert saved["backbone_norm"] == (preset["backbone_norm"] or SCRATCH_BACKBONE_NORM)
     assert saved["pretrained_backbone_weights"] is None
+    # null: the best measured score for a policy with a camera (the tiny dataset has one)
+    assert saved["uncertainty_score"] == (preset.get("uncertainty_score") or DEFAULT_SCORE)

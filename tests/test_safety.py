@@ -104,20 +104,20 @@ def scripted_policy(safety: dict, us: list[float], nan_chunks: set[int] = frozen
     cfg.calibration.rate_mean = 1.0  # so that u = rate
     policy = VIBPolicy(cfg, dataset_stats=STATS).eval()
     step = {"t": 0, "decodes": 0}
-    encode, decode = policy._encode, policy.model.decoder.forward
+    encode, decode = policy.observation_scores, policy.model.decoder.forward
 
     def fake_encode(batch):
-        posterior, _ = encode(batch)
+        posterior, scores = encode(batch)
         u = us[step["t"]]
         step["t"] += 1
-        return posterior, torch.full((batch_size(batch),), u)
+        return posterior, {**scores, "rate": torch.full((batch_size(batch),), u)}
 
     def fake_decode(z):
         out = decode(z)
         step["decodes"] += 1
         return out * NAN if step["decodes"] in nan_chunks else out
 
-    policy._encode = fake_encode
+    policy.observation_scores = fake_encode
     policy.model.decoder.forward = fake_decode
     policy.steps = step
     return policy

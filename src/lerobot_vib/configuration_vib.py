@@ -12,8 +12,9 @@ from lerobot.optim.schedulers import CosineAnnealingWithWarmupSchedulerConfig
 from lerobot.utils.constants import ACTION, OBS_STATE
 
 from .backbone import BACKBONE_LAYERS, BACKBONE_NORMS
+from .scores import RND_INPUTS, SCORES
 
-IMAGE_POOLINGS = ("spatial_softmax", "avg")
+IMAGE_POOLINGS = ("spatial_softmax", "spatial_softmax_avg", "avg")
 POSITION_EMBEDDINGS = ("learned", "sinusoidal")
 TEMPORAL_ENSEMBLES = ("none", "act", "uncertainty")
 SAFETY_ACTIONS = ("hold", "home")
@@ -27,6 +28,10 @@ class VIBConfigError(ParsingError):
     which field is wrong; the text of a `ParsingError` reaches the user.
     """
 
+
+# The score u is read from when the config leaves it open and the policy has a camera: the best measured on the
+# simulated arm (benchmarks/results/uncertainty_scores_*/report.md).
+DEFAULT_SCORE = "low_image_rate"
 
 # The trunk's normalization when it is trained from scratch: the best of `benchmarks/backbone_norm.py`.
 SCRATCH_BACKBONE_NORM = "group_norm"
@@ -97,6 +102,15 @@ class CalibrationConfig:
         conformal_alpha: Target per-episode false-stop rate of the conformal threshold.
         conformal_episodes: The held-out episodes the conformal threshold was computed on.
         rollout_seeds: The env seeds of the rollouts a "conformal_rollouts" gamma was computed on.
+        score_means: Mean over the calibration frames of every other score (`scores.py`), by name: each
+            normalizes its u as R_bar does the rate's.
+        score_stds: Their standard deviations over the same frames.
+        gamma_score: The score `gamma` was set on (None: "rate", as every calibration before scores existed).
+        gamma_band: A time-indexed threshold, one value per episode step (the last one holds after it): at step
+            t the stop threshold is gamma_band[t] instead of `gamma` (`lerobot-vib-calibrate --rollouts=...
+            --threshold=time_band`; `gamma` then holds its largest value). u is not equally high at every
+            phase of a task, so one threshold for all steps is either late where u is low or trips where it
+            is high.
         frames_above_gamma: Fraction of the calibration frames with u > gamma (None for a gamma from rollouts).
         episodes_above_gamma: Fraction of the calibration episodes (or rollouts) with u > gamma at some frame:
             the in-sample rate of episodes the threshold stop would interrupt.
@@ -113,6 +127,10 @@ class CalibrationConfig:
     conformal_alpha: float | None = None
     conformal_episodes: list[int] | None = None
     rollout_seeds: list[int] | None = None
+    score_means: dict[str, float] = field(default_factory=dict)
+    score_stds: dict[str, float] = field(default_factory=dict)
+    gamma_score: str | None = None
+    gamma_band: list[float] | None = None
     frames_above_gamma: float | None = None
     episodes_above_gamma: float | None = None
 
@@ -123,6 +141,17 @@ class CalibrationConfig:
                 raise VIBConfigError(f"`calibration.{name}` must be a positive finite number, got {value}.")
         if self.rate_std is not None and not (math.isfinite(self.rate_std) and self.rate_std >= 0):
             raise VIBConfigError(f"`calibration.rate_std` must be a finite number >= 0, got {self.rate_std}.")
+        for name, value in self.score_means.items():
+            if name not in SCORES or not (math.isfinite(value) and value > 0):
+                raise VIBConfigError(
+                    f"`calibration.score_means` must map scores {SCORES} to positive finite means, got {name}={value}."
+                )
+        if self.gamma_band is not None and (
+            not self.gamma_band or not all(math.isfinite(g) and g > 0 for g in self.gamma_band)
+        ):
+            raise VIBConfigError("`calibration.gamma_band` must be a non-empty list of positive finite thresholds.")
+        if self.gamma_score is not None and self.gamma_score not in SCORES:
+            raise VIBConfigError(f"`calibration.gamma_score` must be one of {SCORES}, got {self.gamma_score!r}.")
 
 
 @PreTrainedConfig.register_subclass("vib")
@@ -148,6 +177,11 @@ class VIBConfig(PreTrainedConfig):
         n_action_steps: Number of actions of a chunk executed before the policy is queried again
             (ACT's action queue). At most `chunk_size`.
         normalization_mapping: Normalization mode per feature type (LeRobot's normalizer processor).
+        normalization_floor: Floor under every normalization scale, relative to the median scale of the
+            feature's dimensions (`normalization.py`): a joint the demonstrations never move would otherwise
+            turn any deviation into a huge z-score that dominates the inputs and the rate. Applied when the
+            processors are built from dataset statistics (training); a checkpoint keeps the statistics it
+            saved. None: LeRobot's statistics as they are (checkpoints trained before the floor existed).
         vision_backbone: torchvision ResNet used for every camera (one shared trunk), as in ACT.
         pretrained_backbone_weights: Initial weights of the backbone: a torchvision weights name
             ("ResNet18_Weights.IMAGENET1K_V1", the default, as ACT; needs the torch hub cache or a network
@@ -170,7 +204,9 @@ class VIBConfig(PreTrainedConfig):
         image_pooling: How a camera's ResNet feature map becomes a feature vector.
             "spatial_softmax" (default): expected image coordinates of `spatial_softmax_num_keypoints`
             learned keypoints (LeRobot's Diffusion Policy layer), which keeps *where* things are;
-            "avg": global average pooling, which discards it.
+            "avg": global average pooling, which discards it; "spatial_softmax_avg": the keypoints and the
+            feature map's channel means side by side (keypoints are blind to the map's overall level, so a
+            black image gives ordinary-looking keypoints; the means are not).
         spatial_softmax_num_keypoints: Number of keypoints for "spatial_softmax" pooling.
         mlp_hidden_dim: Hidden width of the two-layer MLPs that project each camera's pooled feature,
             `observation.state` and `observation.environment_state` to the fused feature.
@@ -191,6 +227,20 @@ class VIBConfig(PreTrainedConfig):
         beta: Weight of the rate in the loss, L = L1 + beta * mean(R) (paper Eq. 5; Table II: 1e-4 best).
         rate_momentum: Momentum of the running mean and second moment of the rate kept during training
             (buffers saved with the model), which give R_bar until `lerobot-vib-calibrate` replaces it.
+        uncertainty_score: The score u is read from (`scores.py`; each is normalized by its mean over the
+            calibration frames, u = s / s_bar). None: the best measured on the simulated arm
+            (`DEFAULT_SCORE`, docs/uncertainty.md) for a policy with a camera, else "rate"; resolved when the
+            policy is built and saved resolved. "rate": the paper's rate over the fused state tokens;
+            "image_rate": the rate with the state path held at its training mean, so only the camera moves it;
+            "low_image_rate": its inverse, high when the camera path carries less information than in training
+            (a dark, covered or featureless view lowers the rate);
+            "embedding_rnd": random network distillation on the policy's observation embedding;
+            "chunk_disagreement": the spread of the overlapping chunks' candidates for the current step (decodes
+            a chunk every step). All but "rate" need `lerobot-vib-calibrate`, which computes their statistics
+            and fits the RND. The safety stop and Eq. 6 use this u; every available score is traced in
+            `last_step.scores`.
+        rnd_input: The embedding "embedding_rnd" reads: "fused" (the fused feature the bottleneck sees, as
+            FIPER's RND-OE) or "pooled" (the cameras' pooled trunk features and the normalized state).
         temporal_ensemble: How `select_action` turns chunks into one action. "none": ACT's action queue
             of `n_action_steps`; "act": ACT's temporal ensembling, w_j ∝ exp(-m * j); "uncertainty": the
             paper's Eq. 6, w_j ∝ exp(-m * u_j * j), j = 0 the oldest chunk's candidate and u_j the normalized
@@ -229,6 +279,8 @@ class VIBConfig(PreTrainedConfig):
         }
     )
 
+    normalization_floor: float | None = 0.1
+
     # Encoder p(z|s).
     vision_backbone: str = "resnet18"
     pretrained_backbone_weights: str | None = "ResNet18_Weights.IMAGENET1K_V1"
@@ -257,7 +309,9 @@ class VIBConfig(PreTrainedConfig):
     beta: float = 1e-4
     rate_momentum: float = 0.01
 
-    # Run time: ensembling, safety stop, calibration.
+    # Run time: the uncertainty score, ensembling, safety stop, calibration.
+    uncertainty_score: str | None = None
+    rnd_input: str = "fused"
     temporal_ensemble: str = "none"
     temporal_ensemble_coeff: float = 0.01
     uncertainty_every_step: bool = True
@@ -304,6 +358,10 @@ class VIBConfig(PreTrainedConfig):
             raise VIBConfigError(
                 f"`position_embedding` must be one of {POSITION_EMBEDDINGS}, got {self.position_embedding!r}."
             )
+        if self.normalization_floor is not None and not (
+            math.isfinite(self.normalization_floor) and 0 < self.normalization_floor <= 1
+        ):
+            raise VIBConfigError(f"`normalization_floor` must be in (0, 1] or null, got {self.normalization_floor}.")
         if self.n_obs_steps != 1:
             raise VIBConfigError(f"Only `n_obs_steps=1` is supported, got {self.n_obs_steps}.")
         for name in ("chunk_size", "n_action_steps", "n_state_tokens", "d_token", "latent_dim", "n_layers"):
@@ -324,6 +382,10 @@ class VIBConfig(PreTrainedConfig):
             raise VIBConfigError(f"`beta` must be >= 0, got {self.beta}.")
         if not 0 < self.rate_momentum <= 1:
             raise VIBConfigError(f"`rate_momentum` must be in (0, 1], got {self.rate_momentum}.")
+        if self.uncertainty_score is not None and self.uncertainty_score not in SCORES:
+            raise VIBConfigError(f"`uncertainty_score` must be one of {SCORES}, got {self.uncertainty_score!r}.")
+        if self.rnd_input not in RND_INPUTS:
+            raise VIBConfigError(f"`rnd_input` must be one of {RND_INPUTS}, got {self.rnd_input!r}.")
         if self.temporal_ensemble not in TEMPORAL_ENSEMBLES:
             raise VIBConfigError(
                 f"`temporal_ensemble` must be one of {TEMPORAL_ENSEMBLES}, got {self.temporal_ensemble!r}."
@@ -348,6 +410,13 @@ class VIBConfig(PreTrainedConfig):
             raise ValueError(f"VIB needs an `{ACTION}` output feature; got outputs {list(self.output_features or {})}.")
         if len(self.action_feature.shape) != 1:
             raise ValueError(f"`{ACTION}` must be a vector, got shape {tuple(self.action_feature.shape)}.")
+        if self.uncertainty_score is None:
+            self.uncertainty_score = DEFAULT_SCORE if self.image_features else "rate"
+        if self.uncertainty_score in ("image_rate", "low_image_rate") and not self.image_features:
+            raise ValueError(
+                f"`uncertainty_score={self.uncertainty_score}` reads the camera path, and this policy has no camera: "
+                "use `rate` (or `embedding_rnd`, `chunk_disagreement`)."
+            )
         home = self.safety.home_pose
         if home is not None and len(home) != self.action_feature.shape[0]:
             raise ValueError(

@@ -38,8 +38,10 @@ from .bottleneck import GaussianBottleneck, Posterior
 from .calibration import RateTracker, mean_plus_2std_gamma
 from .configuration_vib import VIBConfig
 from .ema import make_ema
+from .processor_vib import vib_dataset_stats
 from .runtime import ChunkRuntime
 from .safety import RobotUnits, SafetyAction, SafetyMonitor
+from .scores import ChunkDisagreement, EmbeddingRND
 
 logger = logging.getLogger(__name__)
 
@@ -84,6 +86,32 @@ def _mlp(in_dim: int, hidden_dim: int, out_dim: int) -> nn.Sequential:
     return nn.Sequential(nn.Linear(in_dim, hidden_dim), nn.ReLU(), nn.Linear(hidden_dim, out_dim))
 
 
+@dataclass
+class EncoderParts:
+    """The fused feature's summands, (B, K * d_token) each, and the cameras' pooled features side by side."""
+
+    image: Tensor | None  # the camera path: the sum of the cameras' projections
+    state: Tensor | None  # the state path: robot state and environment state projections
+    pooled: Tensor | None  # (B, n_cameras * pooled_dim), before projection
+
+    @property
+    def fused(self) -> Tensor:
+        return torch.stack([p for p in (self.image, self.state) if p is not None]).sum(0)
+
+
+class KeypointsAndMean(nn.Module):
+    """Spatial-softmax keypoints (where features are) beside the feature map's channel means (how strongly
+    they are present). Keypoints alone are invariant to the map's overall level: a black or washed-out image
+    yields keypoints near the map's centre, which the rate cannot tell from an ordinary frame."""
+
+    def __init__(self, keypoints: nn.Module):
+        super().__init__()
+        self.keypoints = keypoints
+
+    def forward(self, feature_map: Tensor) -> Tensor:
+        return torch.cat([self.keypoints(feature_map).flatten(1), feature_map.mean(dim=(2, 3))], dim=1)
+
+
 class ObservationEncoder(nn.Module):
     """s -> fused feature of size K * d_token: per-modality projections summed (paper Fig. 2)."""
 
@@ -92,18 +120,24 @@ class ObservationEncoder(nn.Module):
         self.config = config
         self.camera_keys = list(config.image_features)
         fused_dim = config.n_state_tokens * config.d_token
+        self.pooled_dim = 0
         if self.camera_keys:
             self.backbone, channels = build_encoder_trunk(config)
             image_shape = tuple(config.image_features[self.camera_keys[0]].shape)
             with torch.no_grad():  # in eval mode: a probe must not touch batch-norm statistics
                 feature_map_shape = tuple(self.backbone.eval()(torch.zeros(1, *image_shape))["feature_map"].shape[1:])
             self.backbone.train()
+            n_kp = config.spatial_softmax_num_keypoints
             if config.image_pooling == "spatial_softmax":
-                self.pool = SpatialSoftmax(feature_map_shape, num_kp=config.spatial_softmax_num_keypoints)
-                pooled_dim = 2 * config.spatial_softmax_num_keypoints
+                self.pool = SpatialSoftmax(feature_map_shape, num_kp=n_kp)
+                pooled_dim = 2 * n_kp
+            elif config.image_pooling == "spatial_softmax_avg":
+                self.pool = KeypointsAndMean(SpatialSoftmax(feature_map_shape, num_kp=n_kp))
+                pooled_dim = 2 * n_kp + channels
             else:
                 self.pool = nn.AdaptiveAvgPool2d(1)
                 pooled_dim = channels
+            self.pooled_dim = pooled_dim * len(self.camera_keys)
             # One projection per camera so that the sum still tells the cameras apart.
             self.camera_proj = nn.ModuleList(
                 _mlp(pooled_dim, config.mlp_hidden_dim, fused_dim) for _ in self.camera_keys
@@ -113,18 +147,26 @@ class ObservationEncoder(nn.Module):
         if config.env_state_feature:
             self.env_state_proj = _mlp(config.env_state_feature.shape[0], config.mlp_hidden_dim, fused_dim)
 
-    def forward(self, batch: dict[str, Tensor]) -> Tensor:
-        parts = []
+    def parts(self, batch: dict[str, Tensor]) -> EncoderParts:
+        """The two paths of the fused feature, before they are summed, and the cameras' pooled features."""
+        image = state = pooled_all = None
         if self.camera_keys:
             images = torch.cat([batch[key] for key in self.camera_keys])  # one trunk pass for all cameras
             pooled = self.pool(self.backbone(images)["feature_map"]).flatten(1)
-            for pooled_cam, proj in zip(pooled.chunk(len(self.camera_keys)), self.camera_proj, strict=True):
-                parts.append(proj(pooled_cam))
+            per_camera = pooled.chunk(len(self.camera_keys))
+            image = torch.stack([proj(p) for p, proj in zip(per_camera, self.camera_proj, strict=True)]).sum(0)
+            pooled_all = torch.cat(per_camera, dim=1)
+        states = []
         if self.config.robot_state_feature:
-            parts.append(self.state_proj(batch[OBS_STATE]))
+            states.append(self.state_proj(batch[OBS_STATE]))
         if self.config.env_state_feature:
-            parts.append(self.env_state_proj(batch[OBS_ENV_STATE]))
-        return torch.stack(parts).sum(0)
+            states.append(self.env_state_proj(batch[OBS_ENV_STATE]))
+        if states:
+            state = torch.stack(states).sum(0)
+        return EncoderParts(image=image, state=state, pooled=pooled_all)
+
+    def forward(self, batch: dict[str, Tensor]) -> Tensor:
+        return self.parts(batch).fused
 
 
 class ActionDecoder(nn.Module):
@@ -189,6 +231,8 @@ class UncertaintyStep:
     stopped: Tensor  # (B,) bool: the safety action was emitted
     just_stopped: Tensor  # (B,) bool: RUN -> STOP at this step
     resumed: Tensor  # (B,) bool: STOP -> RUN at this step
+    score: str = "rate"  # the score u was read from (`VIBConfig.uncertainty_score`)
+    scores: dict[str, Tensor] | None = None  # (B,) raw value of every score computed at this step, by name
 
     def row(self, i: int = 0) -> dict[str, float | bool]:
         """Batch element i as plain numbers (for traces)."""
@@ -213,7 +257,10 @@ class VIB(nn.Module):
         self.decoder = ActionDecoder(config)
 
     def encode(self, batch: dict[str, Tensor]) -> Posterior:
-        fused = self.encoder(batch)
+        return self.posterior_of(self.encoder(batch))
+
+    def posterior_of(self, fused: Tensor) -> Posterior:
+        """The state tokens' posterior for a fused feature (B, K * d_token)."""
         tokens = fused.view(fused.shape[0], self.config.n_state_tokens, self.config.d_token)
         return self.bottleneck.posterior(tokens)
 
@@ -244,13 +291,25 @@ class VIBPolicy(PreTrainedPolicy):
         if ignored := sorted(set(config.input_features) - set(self._used_inputs)):
             logger.warning("VIB ignores these input features: %s", ignored)
         self.model = VIB(config)
+        # The other scores' fitted parts (scores.py): the state path's training mean for "image_rate" and the
+        # RND of "embedding_rnd". NaN / unfitted until `lerobot-vib-calibrate`; outside `model`, so neither
+        # the optimizer nor the weight average touches them.
+        fused_dim = config.n_state_tokens * config.d_token
+        self.register_buffer("state_embedding_mean", torch.full((fused_dim,), torch.nan))
+        state_dim = config.robot_state_feature.shape[0] if config.robot_state_feature else 0
+        rnd_dim = fused_dim if config.rnd_input == "fused" else self.model.encoder.pooled_dim + state_dim
+        self.embedding_rnd = EmbeddingRND(rnd_dim)
+        # Traces every score at every step (benchmarks): decodes a chunk per step for "chunk_disagreement".
+        self.trace_all_scores = False
         # The averaged weights the policy acts with (`ema.py`); the optimizer never sees them.
         self.ema = make_ema(self.model, config.ema_decay) if config.ema_decay is not None else None
         self.rate_tracker = RateTracker(config.rate_momentum)
         units_features = {ACTION: config.action_feature}
         if config.robot_state_feature:
             units_features[OBS_STATE] = config.robot_state_feature
-        self.robot_units = RobotUnits(units_features, config.normalization_mapping, kwargs.get("dataset_stats"))
+        # The floored statistics, as the processors normalize with them (processor_vib.py).
+        stats = vib_dataset_stats(config, kwargs.get("dataset_stats"))
+        self.robot_units = RobotUnits(units_features, config.normalization_mapping, stats)
         self.last_rate: Tensor | None = None
         self.last_step: UncertaintyStep | None = None
         self.reset()
@@ -298,6 +357,9 @@ class VIBPolicy(PreTrainedPolicy):
             cfg.temporal_ensemble, cfg.chunk_size, cfg.n_action_steps, cfg.temporal_ensemble_coeff
         )
         self._batch_size: int | None = None
+        self._disagreement = ChunkDisagreement(cfg.chunk_size)
+        self._episode_step = 0
+        self._active_score = cfg.uncertainty_score or "rate"
         self.last_step = None
 
     # ------------------------------------------------------------------------------------------- uncertainty
@@ -307,13 +369,30 @@ class VIBPolicy(PreTrainedPolicy):
         calibrated = self.config.calibration.rate_mean
         return calibrated if calibrated is not None else self.rate_tracker.mean
 
-    def stop_threshold(self) -> float:
-        """gamma: `safety.gamma`, else the calibrated threshold, else mean(u) + 2 std(u) from training."""
+    def score_mean(self, score: str | None = None) -> float:
+        """s_bar of a score (default: the configured one): R_bar for the rate, else its calibrated mean (NaN
+        if it was never calibrated)."""
+        score = score or self.config.uncertainty_score
+        if score == "rate":
+            return self.rate_mean()
+        return self.config.calibration.score_means.get(score, math.nan)
+
+    def stop_threshold(self, step: int | None = None) -> float:
+        """gamma at episode step `step` (default: the current one): `safety.gamma`, else the calibrated threshold
+        if it was set on the configured score (a time-indexed band's value at that step), else mean(u) + 2
+        std(u) of that score from the calibration frames (for the rate: from training)."""
         if self.config.safety.gamma is not None:
             return self.config.safety.gamma
         calibration = self.config.calibration
-        if calibration.gamma is not None:
+        score = self.config.uncertainty_score
+        if calibration.gamma is not None and (calibration.gamma_score or "rate") == score:
+            if calibration.gamma_band:
+                t = self._episode_step if step is None else step
+                return calibration.gamma_band[min(t, len(calibration.gamma_band) - 1)]
             return calibration.gamma
+        if score != "rate":
+            mean, std = calibration.score_means.get(score), calibration.score_stds.get(score)
+            return mean_plus_2std_gamma(mean, std) if mean is not None and std is not None else math.nan
         if calibration.rate_mean is not None and calibration.rate_std is not None:
             return mean_plus_2std_gamma(calibration.rate_mean, calibration.rate_std)
         return mean_plus_2std_gamma(self.rate_tracker.mean, self.rate_tracker.std)
@@ -326,7 +405,37 @@ class VIBPolicy(PreTrainedPolicy):
                 "every step would be a safety stop. Train it with lerobot-train (which keeps running statistics) "
                 "or run `lerobot-vib-calibrate` on its training data."
             )
+        score = self.config.uncertainty_score
+        missing = []
+        if score != "rate" and not math.isfinite(self.score_mean(score)):
+            missing.append("its mean over the training frames")
+        if score in ("image_rate", "low_image_rate") and not torch.isfinite(self.state_embedding_mean).all():
+            missing.append("the state path's training mean")
+        if score == "embedding_rnd" and not self.embedding_rnd.fitted:
+            missing.append("a fitted RND")
+        self._active_score = score
+        if missing:
+            message = (
+                f"`uncertainty_score={score}` needs {' and '.join(missing)}, which this checkpoint lacks: run "
+                "`lerobot-vib-calibrate --policy.path=<checkpoint> --dataset.repo_id=<its training data>` (it "
+                "computes every score's statistics and fits the RND), or use `--policy.uncertainty_score=rate`."
+            )
+            if self.config.safety.enabled or self.config.temporal_ensemble == "uncertainty":
+                raise RuntimeError(message)
+            # Nothing acts on u: trace the paper's rate, which training already normalizes, rather than refuse.
+            logger.warning("%s Until then u is the rate's.", message)
+            self._active_score = "rate"
         safety = self.config.safety
+        calibration = self.config.calibration
+        stale_gamma = calibration.gamma is not None and (calibration.gamma_score or "rate") != score
+        if safety.enabled and safety.gamma is None and stale_gamma:
+            logger.warning(
+                "The calibrated gamma was set on the %s score, but u is read from %s: the stop uses mean + 2 "
+                "std of %s instead. Set gamma on this score (lerobot-vib-calibrate --rollouts=...).",
+                calibration.gamma_score or "rate",
+                score,
+                score,
+            )
         if (safety.action == "home" or safety.home_pose is not None) and not self.robot_units.known(ACTION):
             raise RuntimeError(
                 "`safety.home_pose` is in robot units, but the policy lacks the action normalization statistics "
@@ -335,13 +444,15 @@ class VIBPolicy(PreTrainedPolicy):
         gamma = self.stop_threshold() if safety.enabled else None
         if gamma is not None and not math.isfinite(gamma):
             raise RuntimeError("The safety stop is enabled but its threshold gamma is unknown: set `safety.gamma`.")
-        if gamma is not None and gamma < 1:
+        if gamma is not None and gamma < 1 and not self.config.calibration.gamma_band:
             logger.warning(
                 "The safety stop's threshold gamma = %.3g is below 1, the mean u of the training data: most "
                 "in-distribution steps will stop the policy. Check `safety.gamma` / `calibration.gamma`.",
                 gamma,
             )
         resume = safety.resume_threshold if safety.resume_threshold is not None else gamma
+        if resume is not None and gamma is not None and self.config.calibration.gamma_band:
+            resume = min(resume, gamma)  # the band moves gamma every step; the hysteresis stays below it
         self.runtime.reset(SafetyMonitor(gamma, resume, safety.resume_steps))
 
     # ---------------------------------------------------------------------------------------------- input checks
@@ -425,30 +536,45 @@ class VIBPolicy(PreTrainedPolicy):
             self._start_episode()
         obs_finite = torch.stack([torch.isfinite(batch[k]).flatten(1).all(dim=1) for k in self._used_inputs]).all(0)
 
-        if self._reuse_last_plan_uncertainty():
-            posterior, rate, u = None, self.last_step.rate, self.last_step.u
-        else:
-            posterior, rate = self._encode(batch)
-            u = rate / self.rate_mean()
+        score = self._active_score
+        planned: list[Tensor] = []
 
         def decode() -> Tensor:
+            if planned:  # already decoded this step for the disagreement score
+                return planned[0]
             if posterior is None:
                 raise RuntimeError("A chunk must be planned but the observation was not encoded.")
             z = posterior.sample() if self.config.sample_latent_at_inference else posterior.mean
-            return self.network.decoder(z)
+            planned.append(self.network.decoder(z))
+            return planned[0]
 
+        if self._reuse_last_plan_uncertainty():
+            posterior, rate, u, scores = None, self.last_step.rate, self.last_step.u, self.last_step.scores
+        else:
+            posterior, scores = self.observation_scores(batch)
+            rate = scores["rate"]
+            if score == "chunk_disagreement" or self.trace_all_scores:
+                scores["chunk_disagreement"] = self._disagreement.update(decode())
+            u = scores[score] / self.score_mean(score)
+
+        gamma = self.stop_threshold()
+        if self.config.calibration.gamma_band and self.runtime.monitor.gamma is not None:
+            self.runtime.monitor.set_threshold(gamma, self.config.safety.resume_threshold)
         action, decision = self.runtime.step(
             u, decode, lambda last: self._safety_action(batch, batch_size, last), unknown=~obs_finite
         )
+        self._episode_step += 1
         self.last_rate = rate
         self.last_step = UncertaintyStep(
             rate=rate,
             u=u,
-            gamma=self.stop_threshold(),
+            gamma=gamma,
             threshold_active=self.config.safety.enabled,
             stopped=decision.stopped,
             just_stopped=decision.just_stopped,
             resumed=decision.resumed,
+            score=score,
+            scores=scores,
         )
         return action
 
@@ -456,6 +582,8 @@ class VIBPolicy(PreTrainedPolicy):
         """With `uncertainty_every_step=False`, steps served from the action queue skip the network."""
         return (
             not self.config.uncertainty_every_step
+            and self.config.uncertainty_score != "chunk_disagreement"
+            and not self.trace_all_scores
             and self.runtime.queued
             and self.last_step is not None
             and not self.runtime.any_stopped
@@ -465,6 +593,32 @@ class VIBPolicy(PreTrainedPolicy):
         network = self.network
         posterior = network.encode(batch)
         return posterior, network.bottleneck.rate(posterior)
+
+    def rnd_embedding(self, parts: EncoderParts, batch: dict[str, Tensor]) -> Tensor:
+        """The embedding that "embedding_rnd" reads (`config.rnd_input`)."""
+        if self.config.rnd_input == "fused":
+            return parts.fused
+        pieces = [p for p in (parts.pooled, batch.get(OBS_STATE) if self.config.robot_state_feature else None)]
+        return torch.cat([p for p in pieces if p is not None], dim=1)
+
+    def observation_scores(self, batch: dict[str, Tensor]) -> tuple[Posterior, dict[str, Tensor]]:
+        """One encoder pass: the posterior and the raw value (B,) of every observation score that is fitted
+        ("rate" always; "image_rate" and "embedding_rnd" once calibrated). `scores.py` defines them."""
+        network = self.network
+        parts = network.encoder.parts(batch)
+        posterior = network.posterior_of(parts.fused)
+        scores = {"rate": network.bottleneck.rate(posterior)}
+        if parts.image is not None:
+            if parts.state is None:
+                scores["image_rate"] = scores["rate"]
+            elif torch.isfinite(self.state_embedding_mean).all():
+                held = parts.image + self.state_embedding_mean.to(parts.image)
+                scores["image_rate"] = network.bottleneck.rate(network.posterior_of(held))
+        if "image_rate" in scores:
+            scores["low_image_rate"] = 1.0 / scores["image_rate"]
+        if self.embedding_rnd.fitted:
+            scores["embedding_rnd"] = self.embedding_rnd.error(self.rnd_embedding(parts, batch))
+        return posterior, scores
 
     def _safety_action(self, batch: dict[str, Tensor], batch_size: int, last_command: Tensor | None) -> Tensor:
         """`hold` (the last command) or a bounded step towards `home`, in the policy's normalized space."""

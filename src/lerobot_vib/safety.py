@@ -80,6 +80,11 @@ class SafetyMonitor:
         self.stopped = stopped
         return SafetyStep(stopped=stopped, just_stopped=just_stopped, resumed=resumed & ~bad)
 
+    def set_threshold(self, gamma: float, resume_threshold: float | None = None) -> None:
+        """Change the thresholds from this step on (a time-indexed band moves them every step)."""
+        resume_threshold = gamma if resume_threshold is None else min(resume_threshold, gamma)
+        self.gamma, self.resume_threshold = gamma, resume_threshold
+
     def force_stop(self, mask: Tensor) -> None:
         """Stop these batch elements now (e.g. the policy produced a non-finite action)."""
         self.stopped = self.stopped | mask

@@ -24,6 +24,7 @@ sets gamma to the split-conformal threshold on the rollouts' per-episode max u: 
 with probability at most alpha. R_bar and the rate statistics stay those of the dataset.
 """
 
+import csv
 import json
 import logging
 import math
@@ -45,13 +46,16 @@ from tqdm import tqdm
 
 from ..calibration import (
     QUANTILE_LEVELS,
+    RateStatistics,
     conformal_gamma,
     conformal_min_scores,
     mean_plus_2std_gamma,
-    rate_statistics,
 )
 from ..configuration_vib import CalibrationConfig, VIBConfigError
+from ..metrics import time_indexed_band
 from ..modeling_vib import VIBPolicy
+from ..processor_vib import vib_dataset_stats
+from ..scores import episode_disagreement, fit_embedding_rnd, score_statistics
 
 logger = logging.getLogger(__name__)
 
@@ -80,8 +84,12 @@ class CalibrateConfig:
     conformal_alpha: Target per-episode false-stop rate; sets gamma by split conformal prediction.
     conformal_episodes: Held-out in-distribution episodes for the conformal threshold (not in `episodes`).
     rollouts: `uncertainty_info.json` of clean rollouts of this calibrated checkpoint (`lerobot-vib-eval`, stop
-        off): gamma becomes the conformal threshold at `conformal_alpha` on their per-episode max u.
+        off; its `uncertainty_trace.csv` beside it): gamma becomes the threshold `threshold` at `conformal_alpha`.
     batch_size: Frames per forward pass.
+    threshold: With `rollouts` (None: "time_band"): "time_band", one threshold per episode step from the
+        rollouts' per-step u (the best measured on the arm, docs/uncertainty.md; it needs twice the rollouts of
+        "max", 18 at alpha = 0.1), or "max", one gamma, the conformal threshold on each rollout's max u.
+    rnd_steps: Training steps of the "embedding_rnd" score's predictor (batch 256, on the recorded embeddings).
     num_workers: DataLoader workers.
     output_dir: Where to write the calibrated checkpoint (default: `<checkpoint>_calibrated` beside a local
         checkpoint). An existing folder is only written if it is a calibrated checkpoint itself.
@@ -97,6 +105,8 @@ class CalibrateConfig:
     rollouts: Path | None = None
     batch_size: int = 32
     num_workers: int = 0
+    rnd_steps: int = 3000
+    threshold: str | None = None
     output_dir: Path | None = None
     in_place: bool = False
 
@@ -127,6 +137,13 @@ class CalibrateConfig:
                 )
             if self.episodes is not None and (both := sorted(set(self.conformal_episodes) & set(self.episodes))):
                 raise VIBConfigError(f"Held-out conformal episodes must not be among `--episodes`: {both}.")
+        if self.threshold is not None:
+            if self.threshold not in ("max", "time_band"):
+                raise VIBConfigError(f"`--threshold` must be max or time_band, got {self.threshold!r}.")
+            if self.rollouts is None:
+                raise VIBConfigError("`--threshold` sets gamma from rollouts: give `--rollouts=` too.")
+        elif self.rollouts is not None:
+            self.threshold = "time_band"
         if self.batch_size < 1:
             raise VIBConfigError(f"`--batch_size` must be >= 1, got {self.batch_size}.")
         policy_path = parser.get_path_arg("policy")
@@ -218,6 +235,90 @@ def _loader(repo_id: str, root, episodes, revision, video_backend, batch_size, n
     return torch.utils.data.DataLoader(dataset, batch_size=batch_size, num_workers=num_workers, shuffle=False)
 
 
+@dataclass
+class FrameRecords:
+    """What one encoder and decoder pass over dataset frames keeps, to compute every score (`scores.py`)."""
+
+    episode_index: torch.Tensor  # (N,)
+    frame_index: torch.Tensor  # (N,)
+    rate: torch.Tensor  # (N,)
+    image: torch.Tensor | None  # (N, K * d_token) the camera path
+    state: torch.Tensor | None  # (N, K * d_token) the state path
+    rnd_input: torch.Tensor  # (N, D) the embedding "embedding_rnd" reads
+    chunks: torch.Tensor  # (N, chunk_size, A) the chunk decoded at each frame
+
+    def fit(self, policy: VIBPolicy, rnd_steps: int = 3000) -> None:
+        """Fit the scores' parts on these (training) frames: the state path's mean and the RND."""
+        if self.state is not None:
+            policy.state_embedding_mean.copy_(self.state.mean(0))
+        fit_embedding_rnd(policy.embedding_rnd, self.rnd_input, steps=rnd_steps)
+
+    @torch.no_grad()
+    def scores(self, policy: VIBPolicy) -> dict[str, torch.Tensor]:
+        """Every score that `policy` can compute, per frame (float64)."""
+        network = policy.network
+        out = {"rate": self.rate}
+        if self.image is not None:
+            if self.state is None:
+                out["image_rate"] = self.rate
+            elif torch.isfinite(policy.state_embedding_mean).all():
+                held = self.image + policy.state_embedding_mean
+                out["image_rate"] = torch.cat(
+                    [network.bottleneck.rate(network.posterior_of(h)) for h in held.split(1024)]
+                ).double()
+        if "image_rate" in out:
+            out["low_image_rate"] = 1.0 / out["image_rate"]
+        if policy.embedding_rnd.fitted:
+            out["embedding_rnd"] = torch.cat([policy.embedding_rnd.error(x) for x in self.rnd_input.split(4096)])
+            out["embedding_rnd"] = out["embedding_rnd"].double()
+        disagreement = torch.zeros_like(self.rate)
+        for episode in torch.unique(self.episode_index):
+            idx = torch.nonzero(self.episode_index == episode).flatten()
+            idx = idx[torch.argsort(self.frame_index[idx])]  # in time order, whatever order the loader gave
+            disagreement[idx] = episode_disagreement(self.chunks[idx], self.chunks.shape[1]).double()
+        out["chunk_disagreement"] = disagreement
+        return out
+
+
+@torch.no_grad()
+def record_frames(policy: VIBPolicy, preprocessor, batches) -> FrameRecords:
+    """Encode and decode every frame (eval mode, the acting weights)."""
+    policy.eval()
+    network = policy.network
+    keep: dict[str, list[torch.Tensor]] = {
+        k: [] for k in ("episode", "frame", "rate", "image", "state", "rnd", "chunk")
+    }
+    for batch in batches:
+        obs = preprocessor({k: v for k, v in batch.items() if k.startswith("observation")})
+        policy._check_observation(obs)
+        parts = network.encoder.parts(obs)
+        posterior = network.posterior_of(parts.fused)
+        rate = network.bottleneck.rate(posterior)
+        if not torch.isfinite(rate).all():
+            raise ValueError(
+                "Non-finite rate on calibration frames (episodes "
+                f"{sorted(set(batch['episode_index'].reshape(-1).tolist()))}): check the dataset for NaN values."
+            )
+        keep["episode"].append(torch.as_tensor(batch["episode_index"]).reshape(-1).cpu())
+        keep["frame"].append(torch.as_tensor(batch["frame_index"]).reshape(-1).cpu())
+        keep["rate"].append(rate.double().cpu())
+        keep["image"].append(None if parts.image is None else parts.image.cpu())
+        keep["state"].append(None if parts.state is None else parts.state.cpu())
+        keep["rnd"].append(policy.rnd_embedding(parts, obs).cpu())
+        keep["chunk"].append(network.decoder(posterior.mean).cpu())
+    if not keep["rate"]:
+        raise ValueError("No frames to calibrate on.")
+
+    def cat(name: str) -> torch.Tensor | None:
+        return None if keep[name][0] is None else torch.cat(keep[name])
+
+    return FrameRecords(cat("episode"), cat("frame"), cat("rate"), cat("image"), cat("state"), cat("rnd"), cat("chunk"))
+
+
+def _episode_max(values: torch.Tensor, episode_index: torch.Tensor, scale: float) -> torch.Tensor:
+    return torch.stack([(values[episode_index == e] / scale).max() for e in torch.unique(episode_index)])
+
+
 def calibrate(
     policy: VIBPolicy,
     preprocessor,
@@ -230,8 +331,10 @@ def calibrate(
     num_workers: int = 0,
     revision: str | None = None,
     video_backend: str | None = None,
+    rnd_steps: int = 3000,
 ) -> CalibrationConfig:
-    """Rate statistics of `policy` (eval mode) over the dataset's episodes, and gamma."""
+    """Every score's statistics of `policy` (eval mode) over the dataset's episodes, the fitted parts of the
+    scores (written into `policy`), and gamma on the configured score."""
     if conformal_episodes is not None and episodes is not None and set(conformal_episodes) & set(episodes):
         raise ValueError(
             "Held-out conformal episodes must not be among the calibration episodes: "
@@ -239,15 +342,15 @@ def calibrate(
         )
     policy.eval()
     needed = list(policy._used_inputs)
-
-    def encode_rate(batch: dict) -> torch.Tensor:
-        obs = preprocessor({k: v for k, v in batch.items() if k.startswith("observation")})
-        policy._check_observation(obs)
-        return policy._encode(obs)[1]
-
     common = dict(revision=revision, video_backend=video_backend, batch_size=batch_size, num_workers=num_workers)
     loader = _loader(repo_id, root, episodes, needed=needed, **common)
-    stats = rate_statistics(encode_rate, tqdm(loader, desc="rate statistics", unit="batch"))
+    records = record_frames(policy, preprocessor, tqdm(loader, desc="score statistics", unit="batch"))
+    records.fit(policy, rnd_steps=rnd_steps)
+    values = records.scores(policy)
+    stats = RateStatistics(records.rate, records.episode_index)
+    score = policy.config.uncertainty_score
+    moments = {name: score_statistics(v) for name, v in values.items()}
+    mean, std = moments[score]
     calibration = CalibrationConfig(
         dataset_repo_id=repo_id,
         episodes=sorted(set(stats.episode_index.tolist())),
@@ -255,24 +358,40 @@ def calibrate(
         rate_mean=stats.mean,
         rate_std=stats.std,
         rate_quantiles=stats.quantiles(QUANTILE_LEVELS),
-        gamma=mean_plus_2std_gamma(stats.mean, stats.std),
+        score_means={name: m for name, (m, _) in moments.items() if name != "rate"},
+        score_stds={name: s for name, (_, s) in moments.items() if name != "rate"},
+        gamma=mean_plus_2std_gamma(mean, std),
         gamma_method="mean_plus_2std",
+        gamma_score=score,
     )
     if conformal_alpha is not None:
         loader = _loader(repo_id, root, conformal_episodes, needed=needed, **common)
-        held_out = rate_statistics(encode_rate, tqdm(loader, desc="held-out episodes", unit="batch"))
-        calibration.gamma = conformal_gamma(held_out.episode_max(scale=stats.mean), conformal_alpha)
+        held_out = record_frames(policy, preprocessor, tqdm(loader, desc="held-out episodes", unit="batch"))
+        held_values = held_out.scores(policy)[score]
+        calibration.gamma = conformal_gamma(_episode_max(held_values, held_out.episode_index, mean), conformal_alpha)
         calibration.gamma_method = "conformal"
         calibration.conformal_alpha = conformal_alpha
         calibration.conformal_episodes = sorted(set(held_out.episode_index.tolist()))
-    u = stats.rates / stats.mean
+    u = values[score] / mean
     calibration.frames_above_gamma = float((u > calibration.gamma).double().mean())
-    calibration.episodes_above_gamma = float((stats.episode_max(stats.mean) > calibration.gamma).double().mean())
+    episode_max = _episode_max(values[score], records.episode_index, mean)
+    calibration.episodes_above_gamma = float((episode_max > calibration.gamma).double().mean())
     return calibration
 
 
-def gamma_from_rollouts(calibration: CalibrationConfig, info: dict, alpha: float, source: str) -> CalibrationConfig:
-    """`calibration` with gamma = the split-conformal threshold on clean rollouts' per-episode max u."""
+def gamma_from_rollouts(
+    calibration: CalibrationConfig,
+    info: dict,
+    alpha: float,
+    source: str,
+    expected_score: str = "rate",
+    threshold: str = "max",
+    traces: list[np.ndarray] | None = None,
+) -> CalibrationConfig:
+    """`calibration` with gamma = the split-conformal threshold on clean rollouts' per-episode max u of the
+    score the checkpoint reads u from (`expected_score`); with `threshold="time_band"`, the time-indexed band
+    from the rollouts' per-step u `traces` (metrics.time_indexed_band: the first half of the rollouts sets the
+    band's shape, the second half its conformal level)."""
     if calibration.rate_mean is None:
         raise VIBConfigError(
             "The checkpoint has no R_bar: calibrate it on its dataset first, evaluate that checkpoint, then use "
@@ -283,10 +402,19 @@ def gamma_from_rollouts(calibration: CalibrationConfig, info: dict, alpha: float
             f"{source} was evaluated with the safety stop on, so its episodes are not clean rollouts: evaluate "
             "with `--policy.safety.enabled=false`."
         )
-    rate_mean = info.get("rate_mean")
-    if rate_mean is None or not math.isclose(rate_mean, calibration.rate_mean, rel_tol=1e-4):
+    score = info.get("score") or "rate"
+    if score != expected_score:
         raise VIBConfigError(
-            f"{source} holds u normalized by R_bar={rate_mean}, this checkpoint has R_bar={calibration.rate_mean:.6g}: "
+            f"{source} holds u of the {score} score, this checkpoint reads u from {expected_score}: evaluate it "
+            "with the score it will run with, then calibrate on those rollouts."
+        )
+    if score == "rate":
+        rate_mean, expected_mean, name = info.get("rate_mean"), calibration.rate_mean, "R_bar"
+    else:
+        rate_mean, expected_mean, name = info.get("score_mean"), calibration.score_means.get(score), f"{score}'s mean"
+    if rate_mean is None or expected_mean is None or not math.isclose(rate_mean, expected_mean, rel_tol=1e-4):
+        raise VIBConfigError(
+            f"{source} holds u normalized by {name}={rate_mean}, this checkpoint has {name}={expected_mean}: "
             "evaluate this checkpoint (the calibrated one) and calibrate on those rollouts."
         )
     unknown = [ep.get("seed") for ep in info["per_episode"] if ep["u_max"] is None or not math.isfinite(ep["u_max"])]
@@ -296,21 +424,35 @@ def gamma_from_rollouts(calibration: CalibrationConfig, info: dict, alpha: float
             f"{source} has rollouts without a finite max u (seeds {unknown}): fix them, then calibrate."
         )
     scores = [ep["u_max"] for ep in info["per_episode"]]
-    needed = conformal_min_scores(alpha)
+    needed = conformal_min_scores(alpha) * (2 if threshold == "time_band" else 1)
     if len(scores) < needed:
         raise VIBConfigError(
-            f"A conformal threshold at alpha={alpha} needs at least {needed} rollouts; {source} has {len(scores)}."
+            f"A {'time-indexed band' if threshold == 'time_band' else 'conformal threshold'} at alpha={alpha} needs "
+            f"at least {needed} rollouts; {source} has {len(scores)}."
+            + (" Evaluate more clean rollouts, or use `--threshold=max`." if threshold == "time_band" else "")
         )
-    gamma = conformal_gamma(np.asarray(scores), alpha)
+    band = None
+    if threshold == "time_band":
+        if traces is None or len(traces) != len(scores):
+            raise VIBConfigError(f"The time-indexed band needs the per-step u of every rollout in {source}.")
+        half = len(traces) // 2
+        band = [float(g) for g in time_indexed_band(traces[:half], traces[half:], alpha)]
+        gamma = max(band)
+        above = [bool(np.any(t > np.asarray(band)[: len(t)])) for t in traces]
+    else:
+        gamma = conformal_gamma(np.asarray(scores), alpha)
+        above = [s > gamma for s in scores]
     return replace(
         calibration,
         gamma=gamma,
-        gamma_method="conformal_rollouts",
+        gamma_band=band,
+        gamma_method="time_band_rollouts" if band else "conformal_rollouts",
+        gamma_score=score,
         conformal_alpha=alpha,
         conformal_episodes=None,
         rollout_seeds=[ep["seed"] for ep in info["per_episode"] if ep.get("seed") is not None],
         frames_above_gamma=None,
-        episodes_above_gamma=float(np.mean([s > gamma for s in scores])),
+        episodes_above_gamma=float(np.mean(above)),
     )
 
 
@@ -327,6 +469,7 @@ def calibrate_main(cfg: CalibrateConfig) -> CalibrationConfig:
         return _calibrate_on_rollouts(cfg)
     meta = LeRobotDatasetMetadata(cfg.dataset.repo_id, root=cfg.dataset.root, revision=cfg.dataset.revision)
     check_episodes(meta.total_episodes, episodes=cfg.episodes, conformal_episodes=cfg.conformal_episodes)
+    vib_dataset_stats(cfg.policy, meta.stats, context=f"lerobot-vib-calibrate, {cfg.dataset.repo_id}")
     source = Path(cfg.policy.pretrained_path)
     output_dir = _output_dir(source, cfg.output_dir, cfg.in_place)
     policy = VIBPolicy.from_pretrained(source, config=cfg.policy)
@@ -343,6 +486,7 @@ def calibrate_main(cfg: CalibrateConfig) -> CalibrationConfig:
         num_workers=cfg.num_workers,
         revision=cfg.dataset.revision,
         video_backend=cfg.dataset.video_backend,
+        rnd_steps=cfg.rnd_steps,
     )
     _write(policy, preprocessor, calibration, source, output_dir)
     quantiles = ", ".join(f"q{k}={v:.4g}" for k, v in calibration.rate_quantiles.items())
@@ -351,24 +495,54 @@ def calibrate_main(cfg: CalibrateConfig) -> CalibrationConfig:
         f"{calibration.dataset_repo_id}:\n  R_bar={calibration.rate_mean:.6g}  std={calibration.rate_std:.4g}  "
         f"{quantiles}\n  gamma={calibration.gamma:.4f} ({calibration.gamma_method}"
         + (f", alpha={calibration.conformal_alpha}" if calibration.conformal_alpha is not None else "")
-        + f")\n  on these frames: u > gamma on {100 * calibration.frames_above_gamma:.1f}% of frames and in "
+        + f", on {calibration.gamma_score})\n  other scores' means: "
+        + ", ".join(f"{k}={v:.4g}" for k, v in calibration.score_means.items())
+        + f"\n  on these frames: u > gamma on {100 * calibration.frames_above_gamma:.1f}% of frames and in "
         f"{100 * calibration.episodes_above_gamma:.0f}% of episodes (a stop would interrupt them)"
     )
     return calibration
+
+
+def read_traces(path: Path) -> list[np.ndarray]:
+    """Per-episode u, in step order, from `lerobot-vib-eval`'s uncertainty_trace.csv."""
+    if not path.is_file():
+        raise VIBConfigError(f"The time-indexed band needs the per-step u in {path} (lerobot-vib-eval writes it).")
+    rows: dict[int, list[tuple[int, float]]] = {}
+    with path.open() as f:
+        for row in csv.DictReader(f):
+            rows.setdefault(int(row["episode"]), []).append((int(row["step"]), float(row["u"])))
+    return [np.array([u for _, u in sorted(steps)]) for _, steps in sorted(rows.items())]
 
 
 def _calibrate_on_rollouts(cfg: CalibrateConfig) -> CalibrationConfig:
     source = Path(cfg.policy.pretrained_path)
     output_dir = _output_dir(source, cfg.output_dir, cfg.in_place)
     info = json.loads(Path(cfg.rollouts).read_text())
-    calibration = gamma_from_rollouts(cfg.policy.calibration, info, cfg.conformal_alpha, str(cfg.rollouts))
+    traces = None
+    if cfg.threshold == "time_band":
+        traces = read_traces(Path(cfg.rollouts).with_name("uncertainty_trace.csv"))
+    calibration = gamma_from_rollouts(
+        cfg.policy.calibration,
+        info,
+        cfg.conformal_alpha,
+        str(cfg.rollouts),
+        cfg.policy.uncertainty_score,
+        threshold=cfg.threshold,
+        traces=traces,
+    )
     policy = VIBPolicy.from_pretrained(source, config=cfg.policy)
     preprocessor, _ = make_pre_post_processors(policy.config, pretrained_path=str(source))
     _write(policy, preprocessor, calibration, source, output_dir)
     print(
-        f"Calibrated {output_dir}: gamma={calibration.gamma:.4f} (split conformal at alpha={cfg.conformal_alpha} on "
-        f"the max u of {len(info['per_episode'])} rollouts in {cfg.rollouts}; "
-        f"{100 * calibration.episodes_above_gamma:.0f}% of them exceed it). R_bar={calibration.rate_mean:.6g} "
+        f"Calibrated {output_dir}: gamma={calibration.gamma:.4f} "
+        + (
+            f"(the largest value of a time-indexed band over {len(calibration.gamma_band)} steps, alpha="
+            f"{cfg.conformal_alpha}, from the per-step u of {len(info['per_episode'])} rollouts in {cfg.rollouts}; "
+            if calibration.gamma_band
+            else f"(split conformal at alpha={cfg.conformal_alpha} on the max u of {len(info['per_episode'])} "
+            f"rollouts in {cfg.rollouts}; "
+        )
+        + f"{100 * calibration.episodes_above_gamma:.0f}% of them exceed it). R_bar={calibration.rate_mean:.6g} "
         "is unchanged."
     )
     return calibration

@@ -65,11 +65,17 @@ class UncertaintyCapture:
                 if s is None:  # a policy without a score (LeRobot's ACT): the steps still count
                     nan, no = np.full(action.shape[0], np.nan), np.zeros(action.shape[0], dtype=bool)
                     steps.append(
-                        {"rate": nan, "u": nan, "stopped": no, "just_stopped": no, "gamma": nan, "safety": False}
-                    )
+                        {
+                            "score": None, "score_value": nan, "rate": nan, "u": nan, "stopped": no,
+                            "just_stopped": no, "gamma": nan, "safety": False,
+                        }
+                    )  # fmt: skip
                     return action
+                raw = (s.scores or {}).get(s.score, s.rate)
                 steps.append(
                     {
+                        "score": s.score,
+                        "score_value": raw.float().cpu().numpy(),
                         "rate": s.rate.float().cpu().numpy(),
                         "u": s.u.float().cpu().numpy(),
                         "stopped": s.stopped.cpu().numpy(),
@@ -101,6 +107,9 @@ class UncertaintyCapture:
                     "seed": None if seeds is None else int(seeds[i]),
                     "gamma": steps[0]["gamma"] if steps else float("nan"),
                     "safety": steps[0]["safety"] if steps else False,
+                    "score": steps[0].get("score", "rate") if steps else None,
+                    # a record without the score's own value is the rate's (every record before the scores)
+                    "score_value": np.array([s.get("score_value", s["rate"])[i] for s in steps[:n]]),
                     **{
                         key: np.array([s[key][i] for s in steps[:n]])
                         for key in ("rate", "u", "stopped", "just_stopped")
@@ -154,6 +163,8 @@ def summarize(episodes: list[dict[str, Any]], eval_info: dict) -> dict:
 
     return {
         "rate_mean": _rate_mean(episodes),
+        "score": episodes[0].get("score") if episodes else None,
+        "score_mean": _rate_mean(episodes, key="score_value"),
         "gamma": episodes[0]["gamma"] if episodes and math.isfinite(episodes[0]["gamma"]) else None,
         "safety_enabled": bool(episodes[0]["safety"]) if episodes else None,
         "overall": {
@@ -166,9 +177,12 @@ def summarize(episodes: list[dict[str, Any]], eval_info: dict) -> dict:
     }
 
 
-def _rate_mean(episodes: list[dict[str, Any]]) -> float | None:
-    """R_bar the rollouts' u was normalized by (u = R / R_bar): calibrating on these u needs the same R_bar."""
-    rate = np.concatenate([ep["rate"] for ep in episodes]) if episodes else np.zeros(0)
+def _rate_mean(episodes: list[dict[str, Any]], key: str = "rate") -> float | None:
+    """R_bar the rollouts' u was normalized by (u = R / R_bar): calibrating on these u needs the same R_bar.
+    With `key="score_value"`, the mean of the score u was read from, whichever it was."""
+    if key == "rate" and episodes and episodes[0].get("score", "rate") not in (None, "rate"):
+        return None  # u was another score's: the rate's mean cannot be read off it
+    rate = np.concatenate([ep.get(key, ep["rate"]) for ep in episodes]) if episodes else np.zeros(0)
     u = np.concatenate([ep["u"] for ep in episodes]) if episodes else np.zeros(0)
     ok = np.isfinite(rate) & np.isfinite(u) & (u > 0)
     return float(np.median(rate[ok] / u[ok])) if ok.any() else None

@@ -8,6 +8,7 @@
     lerobot-vib-record-sim --task=insertion --num_episodes=100 --root=data/aloha_insertion_120x160 --resume=true
 """
 
+import json
 import logging
 import os
 import sys
@@ -17,6 +18,7 @@ from pathlib import Path
 from lerobot.configs import parser
 from lerobot.utils.constants import HF_LEROBOT_HOME
 
+from ..normalization import near_constant_vectors, warn_near_constant
 from ..sim.recorder import SIDECAR, RecordingError, RecordingLog, RecordingSettings, record_scripted_dataset
 from ..sim.sim_tasks import get_task
 
@@ -105,6 +107,9 @@ def record_sim(cfg: RecordSimConfig) -> None:
         f"{len(result.episode_seeds)}/{attempts} seeds ({100 * result.success_rate:.0f}%), "
         f"failed seeds {result.failed_seeds}"
     )
+    stats_file = Path(result.root) / "meta" / "stats.json"
+    if stats_file.is_file():
+        warn_near_constant(near_constant_vectors(json.loads(stats_file.read_text())), str(result.root))
     if cfg.push_to_hub:
         from lerobot.datasets.lerobot_dataset import LeRobotDataset
 
