@@ -130,9 +130,7 @@ def main() -> None:
     lines = [
         "# The rate taken apart on the same frames",
         "",
-        f"Machine: {cpu_name()}. Command: `python benchmarks/{Path(__file__).name} "
-        + shlex.join(sys.argv[1:])
-        + "`.",
+        f"Machine: {cpu_name()}. Command: `python benchmarks/{Path(__file__).name} " + shlex.join(sys.argv[1:]) + "`.",
         "",
         "Each change is applied to the recorded observation alone; a cell is the median over frames of the "
         "changed value over the unchanged one. image path: the rate with the state path held at its training "

@@ -347,3 +347,32 @@ def test_calibrate_command_sets_gamma_from_rollouts_in_both_configs(tiny_checkpo
     assert (config["gamma"], config["gamma_method"], config["rate_mean"]) == (10.0, "conformal_rollouts", r_bar)
     assert json.loads((ckpt / "train_config.json").read_text())["policy"]["calibration"] == config
     assert VIBPolicy.from_pretrained(ckpt).stop_threshold() == 10.0
+
+
+def test_calibrate_command_sets_a_time_indexed_band_from_the_rollouts_trace_by_default(
+    tiny_checkpoint, tiny_dataset_root, tmp_path
+):
+    import shutil
+
+    ckpt = tmp_path / "pretrained_model"
+    shutil.copytree(tiny_checkpoint, ckpt)
+    _calibrate(ckpt, tiny_dataset_root, "--in_place=true", "--rnd_steps=50")
+    r_bar = json.loads((ckpt / "config.json").read_text())["calibration"]["rate_mean"]
+    # 20 clean rollouts of 6 steps: u high at the first two steps, low after (lerobot-vib-eval's two files)
+    traces = [[3.0 + 0.01 * i, 3.0, 1.0, 1.0 + 0.01 * i, 1.0, 1.0] for i in range(20)]
+    info = tmp_path / "uncertainty_info.json"
+    info.write_text(json.dumps(_rollouts([max(t) for t in traces], r_bar)))
+    rows = ["episode,seed,step,rate,u,stopped,just_stopped"]
+    rows += [
+        f"{e},{100 + e},{t},{u * r_bar},{u},False,False" for e, trace in enumerate(traces) for t, u in enumerate(trace)
+    ]
+    (tmp_path / "uncertainty_trace.csv").write_text("\n".join(rows) + "\n")
+    log = run([str(BIN / "lerobot-vib-calibrate"), f"--policy.path={ckpt}", f"--rollouts={info}",
+               "--conformal_alpha=0.1", "--in_place=true"])  # fmt: skip
+    assert "time-indexed band over 6 steps" in log
+    config = json.loads((ckpt / "config.json").read_text())["calibration"]
+    band = config["gamma_band"]
+    assert config["gamma_method"] == "time_band_rollouts" and len(band) == 6
+    assert band[0] > 3.0 and band[3] < 1.2  # a u of 2 stops late in a rollout, not at its start
+    policy = VIBPolicy.from_pretrained(ckpt)
+    assert [policy.stop_threshold(step=t) for t in (0, 3, 99)] == [band[0], band[3], band[5]]

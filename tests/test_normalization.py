@@ -128,3 +128,24 @@ def test_identity_features_are_left_alone():
     _, changed = floor_stats(arm_stats(), config.input_features, config.normalization_mapping, 0.1)
     assert changed == []
     assert NormalizationMode("IDENTITY") is NormalizationMode.IDENTITY
+
+
+def _rate_after_deviation(floor, deviation: float) -> float:
+    config = make_config(state_dim=7, action_dim=7, normalization_floor=floor)
+    torch.manual_seed(0)
+    policy = VIBPolicy(config).eval()
+    pre, _ = make_vib_pre_post_processors(config, arm_stats())
+    g = torch.Generator().manual_seed(1)
+    raw = {OBS_STATE: torch.randn(16, 7, generator=g) * torch.tensor(ARM_STATE_STD)}
+    raw["observation.images.top"] = torch.rand(16, 3, 32, 32, generator=g)
+    raw[OBS_STATE][:, 3] = 0.0
+    with torch.no_grad():
+        base = policy.observation_scores(pre(dict(raw)))[1]["rate"]
+        raw[OBS_STATE][:, 3] = deviation
+        moved = policy.observation_scores(pre(dict(raw)))[1]["rate"]
+    return float((moved / base).median())
+
+
+def test_a_never_moved_joint_cannot_blow_up_the_rate():
+    assert _rate_after_deviation(0.1, 0.01) < 1.5  # 0.6 degrees: an ordinary rollout wobble
+    assert _rate_after_deviation(None, 0.01) > 10 * _rate_after_deviation(0.1, 0.01)  # the test can fail

@@ -36,6 +36,7 @@ import torch
 from lerobot import envs
 from lerobot.configs import parser
 from lerobot.configs.default import DatasetConfig
+from lerobot.configs.policies import PreTrainedConfig
 from lerobot.envs.factory import make_env, make_env_pre_post_processors
 from lerobot.envs.utils import close_envs
 from lerobot.policies.act.modeling_act import ACTPolicy
@@ -402,7 +403,12 @@ def run_benchmark(cfg: BenchmarkConfig) -> dict:
     logger.info("%d cells planned, %d to run.", len(planned_cells(cfg)), len(todo))
     if todo:
         paths = {n: train(n, cfg) for n in ("vib", "act") if cfg.needs(n)}
-        vib = VIBPolicy.from_pretrained(paths["vib"]).to(cfg.device).eval() if "vib" in paths else None
+        vib = None
+        if "vib" in paths:
+            vib_config = PreTrainedConfig.from_pretrained(paths["vib"])
+            # Table I's rows are the paper's: VIB's u is its rate (benchmarks/uncertainty_scores.py compares scores).
+            vib_config.uncertainty_score = "rate"
+            vib = VIBPolicy.from_pretrained(paths["vib"], config=vib_config).to(cfg.device).eval()
         act = ACTPolicy.from_pretrained(paths["act"]).to(cfg.device).eval() if "act" in paths else None
         rnd = fit_rnd(cfg, paths["vib"], vib).to(cfg.device) if cfg.needs("rnd") else None
         _write_json(cfg.output_dir / "scores.json", score_statistics(vib, rnd))
