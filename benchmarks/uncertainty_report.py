@@ -108,11 +108,19 @@ def report(groups: dict[str, list[dict]], commands: list[str]) -> str:
             "",
         ]
         success = [t["success"].get("clean") for t in test]
+        calibration = [r.get("calibration_success") for r in results]
         lines.append(
-            "Clean success with the stop off (test): "
+            "Clean success with the stop off, test: "
             + ", ".join(f"{k}/{n}" for k, n in success if n)
-            + f". Chosen on validation: **{best}** with the **{THRESHOLD_NAMES.get(threshold, threshold)}** "
-            "threshold."
+            + "; calibration rollouts: "
+            + ", ".join(f"{k}/{n}" for k, n in (c for c in calibration if c))
+            + (
+                f". Chosen on this group's validation: **{best}** with the "
+                f"**{THRESHOLD_NAMES.get(threshold, threshold)}** threshold."
+                if any(r["splits"].get("validation") for r in results)
+                else f". No validation here: judged with the first group's choice, **{best}** with the "
+                f"**{THRESHOLD_NAMES.get(threshold, threshold)}** threshold."
+            )
         )
         lines += ["", "### Frame AUROC, test (clean vs perturbed, paired by seed and step)", ""]
         conditions = [*TUNED, *HELD_OUT]

@@ -415,6 +415,7 @@ def main() -> None:
             "policy": str(args.policy),
             "calibration": json.loads((path / "config.json").read_text())["calibration"],
             "splits": {s: score_results(args.out, s, calib, dataset) for s in ("validation", "test")},
+            "calibration_success": [int(np.sum(calib["success"])), len(calib["success"])] if calib else None,
             "decomposition": {s: decomposition(args.out, s, dataset) for s in ("test",)},
         }
         args.results.parent.mkdir(parents=True, exist_ok=True)
