@@ -67,9 +67,9 @@ def report(groups: dict[str, list[dict]], commands: list[str]) -> str:
     lines = [
         "# Uncertainty scores on the simulated arm",
         "",
-        f"Machine (rollouts and scores): {first['machine']}. Checkpoints trained on one NVIDIA H200 "
-        "(`benchmarks/gpu_train.sh`, the arm preset `configs/policy/vib_arm_sim.json`, 7000 steps, "
-        "normalization floor 0.1). Commands:",
+        f"Machine (rollouts and scores): {first['machine']}. Checkpoints: the arm preset "
+        "(`configs/policy/vib_arm_sim.json`), trained where each group's name says (H200: `benchmarks/gpu_train.sh`), "
+        "with the normalization floor unless the name says otherwise. Commands:",
         "",
         "```bash",
         *commands,
@@ -102,7 +102,8 @@ def report(groups: dict[str, list[dict]], commands: list[str]) -> str:
             lines.append(f"- `{r['policy']}`: {has_val}; test episodes per condition: {counts}.")
         lines += [
             "",
-            "The choice rule, fixed before the test seeds were run: on validation, the (score, threshold) pair "
+            "The choice rule, set on validation before any test result was read (a one-episode dry run of the "
+            "script had used the first test seed): the (score, threshold) pair "
             "with the most occlusions caught within 5 steps among the pairs with at most 10% clean false stops; "
             "ties to the higher mean frame AUROC over the tuned perturbations.",
             "",
