@@ -233,24 +233,29 @@ def occluded_steps(seed: int) -> range:
     return draw_scene_episode(PerturbationConfig(occlusion=True), int(seed)).occluded_steps
 
 
-def paired_frames(clean: dict, cell: dict, score: str, condition: str) -> tuple[np.ndarray, np.ndarray]:
-    """Clean and perturbed values of a score at the same seed and step (occlusion: occluded steps only;
-    frozen: from the freeze on)."""
+def paired(clean: dict, cell: dict, key: str, condition: str) -> tuple[np.ndarray, np.ndarray]:
+    """Clean and perturbed values of `key` at the same seed and step, stacked over episodes (occlusion: the
+    occluded steps only; frozen: from the freeze on). Per-step values may be scalars or vectors."""
     index = {int(s): i for i, s in enumerate(clean["seeds"])}
     neg, pos = [], []
     for j, seed in enumerate(cell["seeds"]):
         i = index.get(int(seed))
         if i is None:
             continue
-        a, b = np.asarray(clean[score][i], dtype=np.float64), np.asarray(cell[score][j], dtype=np.float64)
-        steps = range(min(len(a), len(b)))
+        a = np.asarray(np.stack(clean[key][i]), dtype=np.float64)
+        b = np.asarray(np.stack(cell[key][j]), dtype=np.float64)
+        n = min(len(a), len(b))
+        steps = list(range(n))
         if condition == "occlusion":
-            steps = [t for t in occluded_steps(seed) if t < min(len(a), len(b))]
+            steps = [t for t in occluded_steps(seed) if t < n]
         elif condition == "frozen":
-            steps = range(FROZEN_FROM, min(len(a), len(b)))
-        neg.extend(a[list(steps)])
-        pos.extend(b[list(steps)])
-    return np.asarray(neg), np.asarray(pos)
+            steps = list(range(FROZEN_FROM, n))
+        if steps:
+            neg.append(a[steps])
+            pos.append(b[steps])
+    if not neg:
+        return np.zeros(0), np.zeros(0)
+    return np.concatenate(neg), np.concatenate(pos)
 
 
 def thresholds(score: str, calib: dict, dataset: dict) -> dict[str, float | np.ndarray]:
@@ -315,7 +320,7 @@ def score_results(out: Path, split: str, calib: dict, dataset: dict) -> dict:
         for condition, cell in cells.items():
             if condition == "clean":
                 continue
-            neg, pos = paired_frames(clean, cell, score, condition)
+            neg, pos = paired(clean, cell, score, condition)
             if len(neg) and len(pos):
                 res["auroc"][score][condition] = auroc(neg, pos)
         if "occlusion" in cells and calib:
@@ -332,20 +337,16 @@ def decomposition(out: Path, split: str, dataset: dict) -> dict:
     if clean is None:
         return {}
 
-    def flat(cell, key, condition):
-        neg, pos = paired_frames(clean, cell, key, condition) if cell is not clean else (None, None)
-        return neg, pos
-
     res = {}
     for condition, cell in cells.items():
         if condition == "clean":
             continue
         row = {}
         for key in ("rate", "image_rate", "rate_state_path"):
-            neg, pos = flat(cell, key, condition)
+            neg, pos = paired(clean, cell, key, condition)
             row[key] = [float(np.median(neg)), float(np.median(pos))]
         for key in ("mean_term", "var_term"):
-            neg, pos = paired_terms(clean, cell, key, condition)
+            neg, pos = paired(clean, cell, key, condition)
             row[key] = [float(np.median(neg.mean(1))), float(np.median(pos.mean(1)))]
             row[key + "_tokens"] = (np.median(pos, 0) - np.median(neg, 0)).tolist()
         res[condition] = row
@@ -361,26 +362,6 @@ def decomposition(out: Path, split: str, dataset: dict) -> dict:
         "corr_rate_state_path": float(np.corrcoef(rate, st)[0, 1]),
     }
     return res
-
-
-def paired_terms(clean: dict, cell: dict, key: str, condition: str) -> tuple[np.ndarray, np.ndarray]:
-    index = {int(s): i for i, s in enumerate(clean["seeds"])}
-    neg, pos = [], []
-    for j, seed in enumerate(cell["seeds"]):
-        i = index.get(int(seed))
-        if i is None:
-            continue
-        a, b = np.stack(clean[key][i]), np.stack(cell[key][j])
-        n = min(len(a), len(b))
-        steps = list(range(n))
-        if condition == "occlusion":
-            steps = [t for t in occluded_steps(seed) if t < n]
-        elif condition == "frozen":
-            steps = list(range(FROZEN_FROM, n))
-        if steps:
-            neg.append(a[steps])
-            pos.append(b[steps])
-    return np.concatenate(neg), np.concatenate(pos)
 
 
 def main() -> None:

@@ -361,8 +361,8 @@ def test_occluder_stops_the_arm_which_holds_until_u_falls_and_then_resumes():
     policy = VIBPolicy(cfg, dataset_stats=stats).eval()
     encode = policy.observation_scores
 
-    def darkness_score(batch):
-        posterior, scores = encode(batch)
+    def darkness_score(batch, wanted=None):
+        posterior, scores = encode(batch, wanted)
         centre = batch["observation.images.scene"][:, :, 12:36, 16:48].mean(dim=(1, 2, 3)) * 255
         return posterior, {**scores, "rate": torch.clamp((100 - centre) / 10, min=0)}
 

@@ -106,8 +106,8 @@ def scripted_policy(safety: dict, us: list[float], nan_chunks: set[int] = frozen
     step = {"t": 0, "decodes": 0}
     encode, decode = policy.observation_scores, policy.model.decoder.forward
 
-    def fake_encode(batch):
-        posterior, scores = encode(batch)
+    def fake_encode(batch, wanted=None):
+        posterior, scores = encode(batch, wanted)
         u = us[step["t"]]
         step["t"] += 1
         return posterior, {**scores, "rate": torch.full((batch_size(batch),), u)}

@@ -551,7 +551,7 @@ class VIBPolicy(PreTrainedPolicy):
         if self._reuse_last_plan_uncertainty():
             posterior, rate, u, scores = None, self.last_step.rate, self.last_step.u, self.last_step.scores
         else:
-            posterior, scores = self.observation_scores(batch)
+            posterior, scores = self.observation_scores(batch, None if self.trace_all_scores else score)
             rate = scores["rate"]
             if score == "chunk_disagreement" or self.trace_all_scores:
                 scores["chunk_disagreement"] = self._disagreement.update(decode())
@@ -601,14 +601,17 @@ class VIBPolicy(PreTrainedPolicy):
         pieces = [p for p in (parts.pooled, batch.get(OBS_STATE) if self.config.robot_state_feature else None)]
         return torch.cat([p for p in pieces if p is not None], dim=1)
 
-    def observation_scores(self, batch: dict[str, Tensor]) -> tuple[Posterior, dict[str, Tensor]]:
+    def observation_scores(
+        self, batch: dict[str, Tensor], wanted: str | None = None
+    ) -> tuple[Posterior, dict[str, Tensor]]:
         """One encoder pass: the posterior and the raw value (B,) of every observation score that is fitted
-        ("rate" always; "image_rate" and "embedding_rnd" once calibrated). `scores.py` defines them."""
+        ("rate" always; the image path's and RND once calibrated), or with `wanted` only that one beside the
+        rate (the per-step cost of `select_action`). `scores.py` defines them."""
         network = self.network
         parts = network.encoder.parts(batch)
         posterior = network.posterior_of(parts.fused)
         scores = {"rate": network.bottleneck.rate(posterior)}
-        if parts.image is not None:
+        if parts.image is not None and wanted in (None, "image_rate", "low_image_rate"):
             if parts.state is None:
                 scores["image_rate"] = scores["rate"]
             elif torch.isfinite(self.state_embedding_mean).all():
@@ -616,7 +619,7 @@ class VIBPolicy(PreTrainedPolicy):
                 scores["image_rate"] = network.bottleneck.rate(network.posterior_of(held))
         if "image_rate" in scores:
             scores["low_image_rate"] = 1.0 / scores["image_rate"]
-        if self.embedding_rnd.fitted:
+        if self.embedding_rnd.fitted and wanted in (None, "embedding_rnd"):
             scores["embedding_rnd"] = self.embedding_rnd.error(self.rnd_embedding(parts, batch))
         return posterior, scores
 
