@@ -219,3 +219,12 @@ def test_a_threshold_below_the_training_mean_warns_at_episode_start(caplog):
     with caplog.at_level("WARNING"):
         policy._start_episode()  # what the first `select_action` of an episode does
     assert "gamma = 0.5 is below 1" in caplog.text
+
+
+def test_a_truncated_checkpoint_names_the_file_and_the_cause(tmp_path):
+    policy = VIBPolicy(make_config()).eval()
+    policy.save_pretrained(tmp_path)
+    weights = tmp_path / "model.safetensors"
+    weights.write_bytes(weights.read_bytes()[: weights.stat().st_size // 3])
+    with pytest.raises(RuntimeError, match=r"model\.safetensors: the file is damaged or only partly downloaded"):
+        VIBPolicy.from_pretrained(tmp_path)

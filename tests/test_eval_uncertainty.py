@@ -52,3 +52,14 @@ def test_a_record_that_does_not_match_eval_info_is_refused():
     capture._add_batch([step([1.0], [False], [False])], np.ones((1, 1), dtype=bool), seeds=None)
     with pytest.raises(RuntimeError, match="lists 2 episodes"):
         summarize(capture.episodes, {"per_task": [{"metrics": {"successes": [1, 0], "max_rewards": [4, 0]}}]})
+
+
+def test_the_step_a_stop_became_terminal_is_reported():
+    capture = UncertaintyCapture()
+    steps = [step([3.0], [True], [True]), step([3.0], [True], [False]), step([3.0], [True], [False])]
+    for s, halted in zip(steps, (False, True, True), strict=True):
+        s["halted"] = np.array([halted])
+    capture._add_batch(steps, np.zeros((1, 3), dtype=bool), seeds=[7])
+    capture._add_batch(steps[:1], np.zeros((1, 1), dtype=bool), seeds=[8])
+    info = summarize(capture.episodes, {"per_task": [{"metrics": {"successes": [0, 0], "max_rewards": [0, 0]}}]})
+    assert [e["halted_at"] for e in info["per_episode"]] == [1, None]

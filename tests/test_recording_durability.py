@@ -211,3 +211,69 @@ def test_a_dataset_from_before_the_commit_record_resumes_without_losing_files(tm
     after = episode_arrays(root)
     assert sorted(after) == [0, 1]
     assert_same_episodes(before, after)
+
+
+def test_resume_keeps_files_it_did_not_write_and_drops_only_the_unfinished_episode(tmp_path):
+    root = tmp_path / "ds"
+    assert record_killed(root, KILL_POINTS["after the data parquet"], num_episodes=3, tmp_path=tmp_path) == [0]
+    (root / "meta/README.md").write_text("# my notes")
+    (root / "images").mkdir(exist_ok=True)
+    (root / "images/labels.csv").write_text("frame,label\n0,grasp\n")
+    proc = subprocess.run(
+        [str(BIN / "lerobot-vib-record-sim"), *CLI_ARGS, "--num_episodes=1", f"--root={root}", "--resume=true"],
+        capture_output=True,
+        text=True,
+        env=env(),
+        timeout=600,
+    )
+    assert proc.returncode == 0, proc.stderr[-3000:]
+    assert "Dropped the unfinished episode" in proc.stderr  # logging reaches the user after a kill
+    assert "Kept 2 files" in proc.stderr and "meta/README.md" in proc.stderr
+    assert (root / "meta/README.md").read_text() == "# my notes"
+    assert (root / "images/labels.csv").read_text() == "frame,label\n0,grasp\n"
+    assert sorted(episode_arrays(root)) == [0]
+    # They are the user's from now on: never deleted, never checked as episode files.
+    (root / "meta/README.md").write_text("# my notes, longer now")
+    record_scripted_dataset(root, "local/k", SETTINGS, num_episodes=2, resume=True, progress=False)
+    assert sorted(episode_arrays(root)) == [0, 1] and (root / "images/labels.csv").is_file()
+    with pytest.raises(RecordingError, match=r"meta/README\.md.*Nothing was deleted"):
+        record_scripted_dataset(root, "local/k", SETTINGS, num_episodes=1, overwrite=True, progress=False)
+    assert (root / "meta/README.md").is_file() and sorted(episode_arrays(root)) == [0, 1]
+
+
+def test_an_edited_info_json_is_refused_by_name_not_rewritten(tmp_path):
+    import json
+
+    root = tmp_path / "ds"
+    record_scripted_dataset(root, "local/k", SETTINGS, num_episodes=1, progress=False)
+    info = json.loads((root / "meta/info.json").read_text())
+    edited = {**info, "license": "cc-by-4.0", "fps": 25}
+    (root / "meta/info.json").write_text(json.dumps(edited, indent=4))
+    with pytest.raises(RecordingError, match=r"added `license`; changed `fps`.*Nothing was changed"):
+        record_scripted_dataset(root, "local/k", SETTINGS, num_episodes=2, resume=True, progress=False)
+    assert json.loads((root / "meta/info.json").read_text()) == edited
+
+
+@pytest.mark.parametrize(
+    ("flag", "message"),
+    [
+        ("--task=bogus", "Unknown task 'bogus'"),
+        ("--num_episodes=0", "`num_episodes` must be >= 1, got 0"),
+        ("--image_height=0", "`image_height` and `image_width` must be >= 1"),
+        ("--max_attempts=0", "`max_attempts` must be >= 1"),
+        ("--max_attempts=-2", "`max_attempts` must be >= 1"),
+    ],
+)
+def test_bad_recording_arguments_end_with_the_cause(flag, message, tmp_path):
+    proc = subprocess.run(
+        [str(BIN / "lerobot-vib-record-sim"), *CLI_ARGS, f"--root={tmp_path / 'ds'}", flag],
+        capture_output=True,
+        text=True,
+        env=env(),
+        timeout=300,
+    )
+    last = proc.stderr.strip().splitlines()[-1]
+    assert proc.returncode != 0 and message in last and "Traceback" not in proc.stderr, proc.stderr[-2000:]
+    assert not (tmp_path / "ds").exists()
+    with pytest.raises(ValueError, match="max_attempts"):
+        record_scripted_dataset(tmp_path / "ds", "local/k", SETTINGS, num_episodes=1, max_attempts=0, progress=False)

@@ -83,3 +83,81 @@ def test_bad_settings_and_chunks_are_refused():
     runtime.reset(SafetyMonitor(gamma=None))
     with pytest.raises(ValueError, match="chunk"):
         runtime.step(torch.ones(2), lambda: torch.zeros(2, 5, 3), hold)
+
+
+# ------------------------------------------------------------------ every env acts as it would alone
+
+STEPS, CHUNK, DIM = 16, 4, 3
+MODES = [("none", 2), ("act", 1), ("uncertainty", 1)]
+
+
+def scenario(perturbed: bool) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """u (T, 2), unknown (T, 2) and the chunk each step's observation gives (T, 2, CHUNK, DIM).
+
+    Perturbed: env 0's observation is NaN at step 1 (unknown, and its chunk NaN), and its u is above gamma at
+    steps 7-8 (an occluder). Env 1 is the same in both."""
+    g = torch.Generator().manual_seed(1)
+    plan = torch.randn(STEPS, 2, CHUNK, DIM, generator=g)
+    us = 0.5 + torch.rand(STEPS, 2, generator=g)  # below gamma = 2
+    unknown = torch.zeros(STEPS, 2, dtype=torch.bool)
+    if perturbed:
+        unknown[1, 0] = True
+        us[1, 0] = torch.nan
+        plan[1, 0] = torch.nan
+        us[7:9, 0] = 3.0
+    return us, unknown, plan
+
+
+def run(mode: str, n_action_steps: int, us, unknown, plan, envs: list[int]) -> tuple[torch.Tensor, torch.Tensor]:
+    """The runtime on the envs `envs` of the scenario; a chunk is a function of the step's observation."""
+    runtime = ChunkRuntime(mode, CHUNK, n_action_steps, coeff=0.3)
+    runtime.reset(SafetyMonitor(gamma=2.0, resume_steps=2))
+    actions, stopped = [], []
+    for t in range(STEPS):
+        a, d = runtime.step(
+            us[t, envs],
+            lambda t=t: plan[t, envs],
+            lambda last: last if last is not None else torch.zeros(len(envs), DIM),
+            unknown=unknown[t, envs],
+        )
+        actions.append(a)
+        stopped.append(d.stopped)
+    return torch.stack(actions), torch.stack(stopped)
+
+
+@pytest.mark.parametrize(("mode", "n_action_steps"), MODES)
+def test_env_1s_actions_do_not_depend_on_env_0s_stops(mode, n_action_steps):
+    calm, _ = run(mode, n_action_steps, *scenario(False), envs=[0, 1])
+    disturbed, stopped = run(mode, n_action_steps, *scenario(True), envs=[0, 1])
+    assert stopped[:, 0].any() and not stopped[:, 1].any()
+    torch.testing.assert_close(disturbed[:, 1], calm[:, 1], rtol=0, atol=0)
+
+
+@pytest.mark.parametrize(("mode", "n_action_steps"), MODES)
+def test_each_env_in_a_batch_acts_and_stops_as_it_would_alone(mode, n_action_steps):
+    batch, batch_stopped = run(mode, n_action_steps, *scenario(True), envs=[0, 1])
+    for env in (0, 1):
+        alone, alone_stopped = run(mode, n_action_steps, *scenario(True), envs=[env])
+        torch.testing.assert_close(batch[:, env], alone[:, 0], rtol=0, atol=0)
+        assert torch.equal(batch_stopped[:, env], alone_stopped[:, 0])
+    # A NaN chunk does not outlive its stop: stopped at step 1, resumed on the second calm step (3); stopped
+    # at 7-8 by u, resumed on the second calm step (10).
+    assert batch_stopped[:, 0].nonzero().flatten().tolist() == [1, 2, 7, 8, 9]
+
+
+def test_a_resume_from_outside_restarts_only_that_envs_plans():
+    runtime = ChunkRuntime("none", CHUNK, 2, coeff=0.0)
+    runtime.reset(SafetyMonitor(gamma=2.0, resume_steps=2, max_hold_steps=3))
+    us, _, plan = scenario(False)
+    us[2:, 0] = 5.0  # env 0's u never falls: it halts after 3 stopped steps
+    for t in range(6):
+        _, d = runtime.step(us[t], lambda t=t: plan[t], lambda last: last)
+    assert d.halted.tolist() == [True, False] and d.stopped.tolist() == [True, False]
+    assert runtime.resume(torch.tensor([True, False]), grace_steps=2).tolist() == [True, False]
+    a6, d6 = runtime.step(us[6], lambda: plan[6], lambda last: last)
+    assert not d6.stopped.any()  # u = 5 is ignored during the grace steps
+    torch.testing.assert_close(a6[0], plan[6, 0, 0])  # env 0 replans from this step's chunk
+    torch.testing.assert_close(a6[1], plan[6, 1, 0])  # env 1's queue ran out at step 6 anyway (2 per chunk)
+    runtime.step(us[7], lambda: plan[7], lambda last: last)
+    _, d8 = runtime.step(us[8], lambda: plan[8], lambda last: last)
+    assert d8.stopped.tolist() == [True, False]  # the grace is over: u = 5 stops env 0 again

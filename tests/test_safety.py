@@ -8,7 +8,7 @@ import torch
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
-from helpers import make_batch, make_config
+from helpers import make_batch, make_config, with_rate_statistics
 from lerobot_vib.modeling_vib import VIBPolicy
 from lerobot_vib.safety import SafetyAction, SafetyMonitor
 
@@ -90,6 +90,11 @@ def test_hold_repeats_the_last_command_and_falls_back_at_the_first_step():
 STATS = {
     "action": {"mean": torch.tensor([0.5, -1.0, 2.0]), "std": torch.tensor([2.0, 0.5, 1.0])},
     "observation.state": {"mean": torch.tensor([0.5, -1.0, 2.0]), "std": torch.tensor([2.0, 0.5, 1.0])},
+}
+
+STATS_5 = {  # the same for the default 5-d state of helpers.make_config
+    "action": STATS["action"],
+    "observation.state": {"mean": torch.zeros(5), "std": torch.ones(5)},
 }
 
 
@@ -240,3 +245,87 @@ def test_uncertainty_at_plans_only_skips_the_encoder_but_still_stops_on_nan():
     obs["observation.state"][0, 0] = NAN
     action = policy.select_action(obs)
     assert bool(policy.last_step.stopped) and torch.isfinite(action).all()
+
+
+# ------------------------------------------------------------------------------------- a stop always ends
+
+
+def test_a_stop_whose_u_never_falls_halts_and_only_an_explicit_resume_ends_it():
+    monitor = SafetyMonitor(gamma=2.0, resume_steps=2, max_hold_steps=5)
+    halted = []
+    for u in [1.0] + [3.0] * 6 + [1.0] * 4:  # u falls only after the halt: too late, the halt is terminal
+        halted.append(bool(monitor.update(torch.tensor([u])).halted))
+    assert halted == [False] * 5 + [True] * 6 and bool(monitor.stopped)
+    assert monitor.resume().tolist() == [True]
+    assert run_monitor(monitor, [1.0, 3.0]) == [False, True]  # running again, and the stop is armed again
+
+
+def test_pause_and_resume_still_works_when_the_occluder_leaves_before_max_hold_steps():
+    monitor = SafetyMonitor(gamma=2.0, resume_steps=3, max_hold_steps=8)
+    us = [1.0] * 3 + [3.0] * 4 + [1.0] * 6  # 4 occluded steps + 3 calm ones = 7 stopped steps < 8
+    steps = [monitor.update(torch.tensor([u])) for u in us]
+    assert [bool(s.stopped) for s in steps] == [False] * 3 + [True] * 6 + [False] * 4
+    assert not any(bool(s.halted) for s in steps)
+
+
+def test_grace_steps_ignore_the_threshold_but_never_a_non_finite_step():
+    monitor = SafetyMonitor(gamma=2.0, resume_steps=2, max_hold_steps=2)
+    run_monitor(monitor, [3.0, 3.0])
+    monitor.resume(grace_steps=3)
+    assert run_monitor(monitor, [5.0, NAN]) == [False, True]
+    with pytest.raises(ValueError, match="grace_steps"):
+        monitor.resume(grace_steps=-1)
+    with pytest.raises(ValueError, match="max_hold_steps"):
+        SafetyMonitor(gamma=2.0, max_hold_steps=0)
+
+
+def test_a_halted_policy_goes_home_if_it_has_a_home_pose_and_resumes_when_told():
+    home = [3.0, 0.0, -1.0]
+    safety = {"enabled": True, "gamma": 2.0, "home_pose": home, "home_max_step": 0.05, "max_hold_steps": 4}
+    policy = scripted_policy(safety, [0.5] + [5.0] * 150 + [0.5] * 3)
+    obs = make_batch(policy.config, batch_size=1, with_action=False)
+    mean, std = STATS["action"]["mean"], STATS["action"]["std"]
+    robot = [policy.select_action(obs) * std + mean for _ in range(4)]
+    for a in robot[2:4]:  # stopped at step 1 (holding the action of step 0), not halted yet
+        torch.testing.assert_close(a, robot[1])
+    assert not bool(policy.last_step.halted)
+    robot += [policy.select_action(obs) * std + mean for _ in range(147)]  # halted at step 4, the 4th stopped
+    assert bool(policy.last_step.halted) and policy.last_step.row(0)["halted"]
+    steps = torch.stack([(b - a).abs().max() for a, b in itertools.pairwise(robot)])
+    assert steps.max() <= 0.05 + 1e-5
+    torch.testing.assert_close(robot[-1], torch.tensor([home]), atol=1e-4, rtol=0)
+    policy.select_action(obs)  # u = 0.5 now, but a halt does not resume by itself
+    assert bool(policy.last_step.stopped)
+    assert policy.resume().tolist() == [True]
+    policy.select_action(obs)
+    assert not bool(policy.last_step.stopped) and not bool(policy.last_step.halted)
+
+
+def test_max_hold_steps_must_let_a_stop_end():
+    from lerobot_vib.configuration_vib import SafetyConfig, VIBConfigError
+
+    for bad in (0, -3, None):
+        with pytest.raises(VIBConfigError, match="max_hold_steps"):
+            SafetyConfig(max_hold_steps=bad)
+
+
+def test_in_a_batch_one_envs_nan_leaves_the_other_envs_actions_unchanged():
+    """Two real policies with the same weights and batch of 2; env 0 sees a NaN state at step 1 in one."""
+    cfg = make_config(chunk_size=4, n_action_steps=2)
+    cfg.safety.resume_steps = 2
+    policy = with_rate_statistics(VIBPolicy(cfg, dataset_stats=STATS_5).eval())
+    obs = [make_batch(cfg, batch_size=2, with_action=False, seed=s) for s in range(10)]
+    runs = []
+    for perturbed in (False, True):
+        policy.reset()
+        actions, stopped = [], []
+        for t, o in enumerate(obs):
+            o = {k: v.clone() for k, v in o.items()}
+            if perturbed and t == 1:
+                o["observation.state"][0] = NAN
+            actions.append(policy.select_action(o))
+            stopped.append(policy.last_step.stopped.clone())
+        runs.append((torch.stack(actions), torch.stack(stopped)))
+    (calm, _), (disturbed, stopped) = runs
+    assert stopped[:, 0].tolist() == [False, True, True] + [False] * 7 and not stopped[:, 1].any()
+    torch.testing.assert_close(disturbed[:, 1], calm[:, 1], rtol=0, atol=0)

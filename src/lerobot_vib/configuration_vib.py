@@ -43,8 +43,11 @@ class SafetyConfig:
 
     RUN -> STOP when u > gamma (only if `enabled`) or, always, when u, the observation or the predicted
     action is not finite: unknown means stop. STOP -> RUN once u < `resume_threshold` for `resume_steps`
-    consecutive steps; the action queue and ensembles are then cleared. While stopped the policy emits
-    the safety action.
+    consecutive steps; the env's action queue and ensemble are then cleared. While stopped the policy emits
+    the safety action. A stop that has held `max_hold_steps` steps becomes terminal (halted): holding keeps
+    the image and the pose, hence u, unchanged, so a stop caused by what the hold keeps in view would
+    otherwise never end. A halted env goes home if `home_pose` is set (else it keeps holding), reports
+    `last_step.halted`, and runs again only after an explicit `policy.resume()`.
 
     Args:
         enabled: Stop when u exceeds gamma. Non-finite values stop the policy even when this is false.
@@ -59,6 +62,9 @@ class SafetyConfig:
             Required for "home"; with "hold", used if the very first step is already stopped.
         home_max_step: Largest change per step and action dimension on the way home, in robot units
             (e.g. radians per step), so that going home is never a jump.
+        max_hold_steps: Consecutive stopped steps after which the stop is terminal (halted). 100 steps is
+            5 s on the simulated arm (20 Hz) and 2 s in ALOHA (50 Hz); longer than any pause-and-resume
+            there (an occluder for at most 40 steps, then `resume_steps`).
     """
 
     enabled: bool = False
@@ -68,6 +74,7 @@ class SafetyConfig:
     action: str = "hold"
     home_pose: list[float] | None = None
     home_max_step: float = 0.01
+    max_hold_steps: int = 100
 
     def __post_init__(self):
         if self.action not in SAFETY_ACTIONS:
@@ -76,6 +83,10 @@ class SafetyConfig:
             raise VIBConfigError("`safety.action=home` needs `safety.home_pose` (the home action in robot units).")
         if self.resume_steps < 1:
             raise VIBConfigError(f"`safety.resume_steps` must be >= 1, got {self.resume_steps}.")
+        if self.max_hold_steps is None or self.max_hold_steps < 1:
+            raise VIBConfigError(
+                f"`safety.max_hold_steps` must be >= 1 (a stop must be able to end), got {self.max_hold_steps}."
+            )
         if not self.home_max_step > 0:
             raise VIBConfigError(f"`safety.home_max_step` must be > 0, got {self.home_max_step}.")
         for name in ("gamma", "resume_threshold"):

@@ -11,6 +11,23 @@ u_j being the u of the pass that produced it. With u_j = 1 for all j this is ACT
 uncertainty is discounted more, so reliable past predictions are not overshadowed by unreliable recent ones.
 A candidate whose u is not finite gets weight 0; if no candidate has a finite u the result is NaN (which
 the safety stop turns into the safety action).
+
+From the paper's Eq. 6. The paper writes w = exp(u_t * m * i) / sum_i exp(u_i * m * i) over the candidates
+a_{t-i} of the last T chunks, and says m trades temporal ensembling against uncertainty weighting so that
+reliable past actions are not overshadowed by unreliable recent ones. Its sign and index are typeset
+ambiguously; the reading above is the one that (a) is ACT's ensembling when every u is 1, which the paper
+builds on, and (b) discounts a candidate more the higher its u, as the sentence says.
+
+What the reading implies, and how to choose m. Candidate j's log-weight is -m * u_j * j, so
+  - at u = 1 the weights fall by exp(-m) per step of age towards the newest; what matters is m * (C - 1)
+    over a full window of C = chunk_size candidates: with C = 20, m = 0.01 gives 0.19 (newest 4.5% against
+    oldest 5.5%, nearly a plain mean), m = 0.1 gives 1.9 (newest 7x lighter), m = 0.3 gives 5.7 (the
+    oldest few candidates carry almost everything: the policy follows old plans, close to open loop);
+  - u moves candidate j's log-weight by -m * j * (u_j - 1): in proportion to m * j. The oldest candidate's
+    u never counts (j = 0), the newest's counts most; with m = 0.01 and C = 20 the newest needs u about 6
+    to lose a factor e against u = 1. So m must be chosen for the chunk size: m * (C - 1) of about 1-6 is
+    where u can move the weights at all, and there the ensemble is already weighted to old plans.
+`benchmarks/eq6_sweep.py` measures this on the arm (docs/uncertainty.md, Eq. 6 on the arm).
 """
 
 from __future__ import annotations

@@ -31,6 +31,7 @@ from lerobot.policies.act.modeling_act import ACTEncoder, create_sinusoidal_pos_
 from lerobot.policies.diffusion.modeling_diffusion import SpatialSoftmax
 from lerobot.policies.pretrained import PreTrainedPolicy
 from lerobot.utils.constants import ACTION, OBS_ENV_STATE, OBS_STATE
+from safetensors import SafetensorError
 from torch import Tensor, nn
 
 from .backbone import build_resnet_trunk
@@ -231,6 +232,7 @@ class UncertaintyStep:
     stopped: Tensor  # (B,) bool: the safety action was emitted
     just_stopped: Tensor  # (B,) bool: RUN -> STOP at this step
     resumed: Tensor  # (B,) bool: STOP -> RUN at this step
+    halted: Tensor | None = None  # (B,) bool: the stop is terminal; only `policy.resume()` ends it
     score: str = "rate"  # the score u was read from (`VIBConfig.uncertainty_score`)
     scores: dict[str, Tensor] | None = None  # (B,) raw value of every score computed at this step, by name
 
@@ -243,6 +245,7 @@ class UncertaintyStep:
             "stopped": bool(self.stopped[i]),
             "just_stopped": bool(self.just_stopped[i]),
             "resumed": bool(self.resumed[i]),
+            "halted": bool(self.halted[i]) if self.halted is not None else False,
         }
 
 
@@ -318,6 +321,16 @@ class VIBPolicy(PreTrainedPolicy):
     def from_pretrained(cls, pretrained_name_or_path: str | Path, **kwargs: Any) -> VIBPolicy:
         with _skip_pretrained_backbone():
             return super().from_pretrained(pretrained_name_or_path, **kwargs)
+
+    @classmethod
+    def _load_as_safetensor(cls, model: VIBPolicy, model_file: str, map_location: str, strict: bool) -> VIBPolicy:
+        try:
+            return super()._load_as_safetensor(model, model_file, map_location, strict)
+        except SafetensorError as e:
+            raise RuntimeError(
+                f"Cannot read the weights in {model_file}: the file is damaged or only partly downloaded or copied "
+                f"({e}). Copy or download the checkpoint again (from the Hub: `force_download=True`)."
+            ) from e
 
     def generate_model_card(self, *args: Any, **kwargs: Any) -> ModelCard:
         """LeRobot's card, with what the policy is and the plugin it needs to load."""
@@ -453,7 +466,7 @@ class VIBPolicy(PreTrainedPolicy):
         resume = safety.resume_threshold if safety.resume_threshold is not None else gamma
         if resume is not None and gamma is not None and self.config.calibration.gamma_band:
             resume = min(resume, gamma)  # the band moves gamma every step; the hysteresis stays below it
-        self.runtime.reset(SafetyMonitor(gamma, resume, safety.resume_steps))
+        self.runtime.reset(SafetyMonitor(gamma, resume, safety.resume_steps, safety.max_hold_steps))
 
     # ---------------------------------------------------------------------------------------------- input checks
 
@@ -573,10 +586,20 @@ class VIBPolicy(PreTrainedPolicy):
             stopped=decision.stopped,
             just_stopped=decision.just_stopped,
             resumed=decision.resumed,
+            halted=decision.halted,
             score=score,
             scores=scores,
         )
         return action
+
+    def resume(self, envs: Tensor | None = None, grace_steps: int = 0) -> Tensor:
+        """Resume stopped or halted envs now, whatever u is: the explicit decision of an operator or a robot
+        loop (e.g. after moving the arm by hand or removing what stopped it). `envs`: (B,) bool, default all.
+        For `grace_steps` steps u > gamma does not stop them again, so the arm can move out of a pose it
+        cannot judge; a non-finite step still stops them. Their plans start afresh. Returns the envs resumed."""
+        if self.runtime.monitor is None:
+            raise RuntimeError("Nothing to resume: the policy has not acted since `reset()`.")
+        return self.runtime.resume(envs, grace_steps)
 
     def _reuse_last_plan_uncertainty(self) -> bool:
         """With `uncertainty_every_step=False`, steps served from the action queue skip the network."""
@@ -626,7 +649,9 @@ class VIBPolicy(PreTrainedPolicy):
     def _safety_action(self, batch: dict[str, Tensor], batch_size: int, last_command: Tensor | None) -> Tensor:
         """`hold` (the last command) or a bounded step towards `home`, in the policy's normalized space."""
         safety = self.config.safety
-        if safety.action == "hold" and last_command is not None:
+        halted = self.runtime.monitor.halted if self.runtime.monitor is not None else None
+        going_home = safety.home_pose is not None and halted is not None and bool(halted.any())
+        if safety.action == "hold" and last_command is not None and not going_home:
             return last_command
         # Robot units from here on: the home pose and its per-step bound are physical.
         last = None if last_command is None else self.robot_units.to_robot(ACTION, last_command)
@@ -643,6 +668,9 @@ class VIBPolicy(PreTrainedPolicy):
         if safety.home_pose is not None:
             home = torch.tensor(safety.home_pose, dtype=torch.float32, device=self.config.device)
         action = SafetyAction(safety.action, home, safety.home_max_step)(last, measured, batch_size)
+        if going_home and safety.action == "hold":  # a halted env goes home; the others keep holding
+            homeward = SafetyAction("home", home, safety.home_max_step)(action, None, batch_size)
+            action = torch.where(halted.to(action.device).unsqueeze(-1), homeward, action)
         return self.robot_units.to_policy(ACTION, action)
 
     # -------------------------------------------------------------------------------------------------- train

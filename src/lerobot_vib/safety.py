@@ -3,6 +3,14 @@
     RUN  -> STOP  when  u > gamma  (if the threshold stop is enabled)  or  the step is unknown
                         (u, the observation or the predicted action not finite: unknown means stop)
     STOP -> RUN   when  u < resume_threshold  for  resume_steps  consecutive steps
+    STOP -> HALT  after  max_hold_steps  consecutive stopped steps
+    STOP | HALT -> RUN   only by `resume()`: an operator's (or a robot loop's) explicit decision
+
+Why HALT: a stopped arm holds still, so its image and pose stop changing and u goes flat. A stop caused by
+something the hold keeps in view (the pose itself, an object that stays) would otherwise last forever. After
+`max_hold_steps` the stop becomes terminal and says so (`halted`), so a loop can end the episode, send the arm
+home, or ask an operator; `resume()` leaves either state, optionally ignoring the threshold for a few
+`grace_steps` so the arm can move away from what it cannot judge (non-finite steps stop it even then).
 
 `SafetyMonitor` knows nothing about the policy or the score: any uncertainty score (the VIB rate, RND, ...)
 can drive it. `SafetyAction` produces what a stopped policy emits: `hold` repeats the last commanded action;
@@ -29,6 +37,7 @@ class SafetyStep:
     stopped: Tensor  # (B,) bool: the safety action is emitted this step
     just_stopped: Tensor  # (B,) bool: RUN -> STOP at this step
     resumed: Tensor  # (B,) bool: STOP -> RUN at this step (plans made before the stop must be dropped)
+    halted: Tensor | None = None  # (B,) bool: the stop is terminal (held max_hold_steps); only resume() ends it
 
 
 class SafetyMonitor:
@@ -38,11 +47,21 @@ class SafetyMonitor:
         gamma: stop when u > gamma. None: never stop on the threshold (non-finite steps still stop).
         resume_threshold: resume after u < resume_threshold for `resume_steps` steps (default: gamma).
         resume_steps: consecutive calm steps needed to resume.
+        max_hold_steps: consecutive stopped steps after which the stop becomes terminal (HALT). None: never,
+            for benchmarks that study the stop itself; a policy always sets it.
     """
 
-    def __init__(self, gamma: float | None, resume_threshold: float | None = None, resume_steps: int = 10):
+    def __init__(
+        self,
+        gamma: float | None,
+        resume_threshold: float | None = None,
+        resume_steps: int = 10,
+        max_hold_steps: int | None = None,
+    ):
         if resume_steps < 1:
             raise ValueError(f"resume_steps must be >= 1, got {resume_steps}.")
+        if max_hold_steps is not None and max_hold_steps < 1:
+            raise ValueError(f"max_hold_steps must be >= 1, got {max_hold_steps}.")
         if resume_threshold is None:
             resume_threshold = gamma if gamma is not None else float("inf")
         if gamma is not None and resume_threshold > gamma:
@@ -50,35 +69,73 @@ class SafetyMonitor:
         self.gamma = gamma
         self.resume_threshold = resume_threshold
         self.resume_steps = resume_steps
+        self.max_hold_steps = max_hold_steps
         self.reset()
 
     def reset(self) -> None:
         self.stopped: Tensor | None = None
+        self.halted: Tensor | None = None
         self._calm_steps: Tensor | None = None
+        self._held_steps: Tensor | None = None
+        self._grace: Tensor | None = None
+
+    def _start(self, u: Tensor) -> None:
+        self.stopped = torch.zeros_like(u, dtype=torch.bool)
+        self.halted = torch.zeros_like(self.stopped)
+        self._calm_steps = torch.zeros_like(u, dtype=torch.long)
+        self._held_steps = torch.zeros_like(self._calm_steps)
+        self._grace = torch.zeros_like(self._calm_steps)
 
     def update(self, u: Tensor, unknown: Tensor | None = None) -> SafetyStep:
         """u: (B,) scores; unknown: (B,) bool, True where this step cannot be trusted for another reason."""
         u = u.detach().reshape(-1)
         if self.stopped is None:
-            self.stopped = torch.zeros_like(u, dtype=torch.bool)
-            self._calm_steps = torch.zeros_like(u, dtype=torch.long)
+            self._start(u)
         elif self.stopped.shape != u.shape:
             raise ValueError(f"Batch size changed from {self.stopped.shape[0]} to {u.shape[0]} without reset().")
         bad = ~torch.isfinite(u)
         if unknown is not None:
             bad = bad | unknown.reshape(-1).to(bad.device)
         too_high = u > self.gamma if self.gamma is not None else torch.zeros_like(bad)
+        too_high = too_high & (self._grace == 0)  # an operator's resume() moves the arm away first
+        self._grace = (self._grace - 1).clamp_min(0)
         calm = ~bad & (u < self.resume_threshold)
 
         was_stopped = self.stopped
         self._calm_steps = torch.where(was_stopped & calm, self._calm_steps + 1, torch.zeros_like(self._calm_steps))
-        resumed = was_stopped & (self._calm_steps >= self.resume_steps)
+        resumed = was_stopped & ~self.halted & (self._calm_steps >= self.resume_steps)
         just_stopped = ~was_stopped & (bad | too_high)
         # A step that cannot be trusted stops even a policy that would resume now.
         stopped = (was_stopped & ~resumed) | just_stopped | bad
         self._calm_steps = torch.where(stopped, self._calm_steps, torch.zeros_like(self._calm_steps))
+        self._held_steps = torch.where(stopped, self._held_steps + 1, torch.zeros_like(self._held_steps))
+        if self.max_hold_steps is not None:
+            self.halted = self.halted | (self._held_steps >= self.max_hold_steps)
         self.stopped = stopped
-        return SafetyStep(stopped=stopped, just_stopped=just_stopped, resumed=resumed & ~bad)
+        return SafetyStep(
+            stopped=stopped, just_stopped=just_stopped, resumed=resumed & ~bad, halted=self.halted.clone()
+        )
+
+    def resume(self, mask: Tensor | None = None, grace_steps: int = 0) -> Tensor:
+        """Leave STOP or HALT now for the envs in `mask` (default: all), whatever u is: an explicit decision
+        from outside the policy. For the next `grace_steps` steps u > gamma does not stop them (a non-finite
+        step still does). Returns the envs that were stopped and are now running."""
+        if grace_steps < 0:
+            raise ValueError(f"grace_steps must be >= 0, got {grace_steps}.")
+        if self.stopped is None:
+            return torch.zeros(0, dtype=torch.bool)  # no step yet: nothing is stopped
+        mask = torch.ones_like(self.stopped) if mask is None else torch.as_tensor(mask, dtype=torch.bool)
+        mask = mask.reshape(-1).to(self.stopped.device)
+        if mask.shape != self.stopped.shape:
+            raise ValueError(f"resume() needs one flag per env ({self.stopped.shape[0]}), got {mask.shape[0]}.")
+        resumed = mask & self.stopped
+        self.stopped = self.stopped & ~mask
+        self.halted = self.halted & ~mask
+        zero = torch.zeros_like(self._calm_steps)
+        self._calm_steps = torch.where(mask, zero, self._calm_steps)
+        self._held_steps = torch.where(mask, zero, self._held_steps)
+        self._grace = torch.where(mask, torch.full_like(self._grace, grace_steps), self._grace)
+        return resumed
 
     def set_threshold(self, gamma: float, resume_threshold: float | None = None) -> None:
         """Change the thresholds from this step on (a time-indexed band moves them every step)."""
@@ -87,8 +144,10 @@ class SafetyMonitor:
 
     def force_stop(self, mask: Tensor) -> None:
         """Stop these batch elements now (e.g. the policy produced a non-finite action)."""
+        newly = mask & ~self.stopped
         self.stopped = self.stopped | mask
         self._calm_steps = torch.where(mask, torch.zeros_like(self._calm_steps), self._calm_steps)
+        self._held_steps = torch.where(newly, torch.ones_like(self._held_steps), self._held_steps)
 
 
 class SafetyAction:

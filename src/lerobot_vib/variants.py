@@ -159,6 +159,7 @@ class ScoredChunkPolicy(PreTrainedPolicy):
             stopped=decision.stopped,
             just_stopped=decision.just_stopped,
             resumed=decision.resumed,
+            halted=decision.halted,
         )
         return action
 

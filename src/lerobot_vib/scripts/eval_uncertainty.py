@@ -7,7 +7,8 @@ The flags are lerobot-eval's and the evaluation is LeRobot's own (`eval_main`: s
 and `eval_info.json`). Beside `eval_info.json` it writes
 
   uncertainty_info.json  per episode, in eval_info's order: seed, success, max reward, steps, mean and max u,
-                         the steps at which the safety stop fired and how many steps it held; then the same
+                         the steps at which the safety stop fired, how many steps it held and the step at
+                         which it became terminal (`halted_at`, safety.max_hold_steps); then the same
                          summed up over all episodes, and over successes and failures apart; and R_bar,
                          the mean rate u was normalized by (`lerobot-vib-calibrate --rollouts` checks it)
   uncertainty_trace.csv  one row per step of every episode: episode, seed, step, rate, u, stopped, just_stopped
@@ -67,7 +68,7 @@ class UncertaintyCapture:
                     steps.append(
                         {
                             "score": None, "score_value": nan, "rate": nan, "u": nan, "stopped": no,
-                            "just_stopped": no, "gamma": nan, "safety": False,
+                            "just_stopped": no, "halted": no, "gamma": nan, "safety": False,
                         }
                     )  # fmt: skip
                     return action
@@ -80,6 +81,7 @@ class UncertaintyCapture:
                         "u": s.u.float().cpu().numpy(),
                         "stopped": s.stopped.cpu().numpy(),
                         "just_stopped": s.just_stopped.cpu().numpy(),
+                        "halted": (s.halted if s.halted is not None else s.stopped & False).cpu().numpy(),
                         "gamma": s.gamma,
                         "safety": s.threshold_active,
                     }
@@ -114,6 +116,7 @@ class UncertaintyCapture:
                         key: np.array([s[key][i] for s in steps[:n]])
                         for key in ("rate", "u", "stopped", "just_stopped")
                     },
+                    "halted": np.array([s.get("halted", np.zeros(done.shape[0], dtype=bool))[i] for s in steps[:n]]),
                 }
             )
 
@@ -148,6 +151,8 @@ def summarize(episodes: list[dict[str, Any]], eval_info: dict) -> dict:
                 "stops": int(ep["just_stopped"].sum()),
                 "stop_steps": [int(t) for t in np.flatnonzero(ep["just_stopped"])],
                 "stopped_steps": int(ep["stopped"].sum()),
+                # the first step of a terminal stop (safety.max_hold_steps): only policy.resume() ends it
+                "halted_at": int(np.argmax(ep["halted"])) if ep.get("halted", np.zeros(0)).any() else None,
             }
         )
 

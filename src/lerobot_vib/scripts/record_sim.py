@@ -18,6 +18,7 @@ from pathlib import Path
 from lerobot.configs import parser
 from lerobot.utils.constants import HF_LEROBOT_HOME
 
+from ..configuration_vib import VIBConfigError
 from ..normalization import near_constant_vectors, warn_near_constant
 from ..sim.recorder import SIDECAR, RecordingError, RecordingLog, RecordingSettings, record_scripted_dataset
 from ..sim.sim_tasks import get_task
@@ -62,6 +63,13 @@ class RecordSimConfig:
     push_to_hub: bool = False
 
     def __post_init__(self):
+        # draccus would replace a ValueError's text with "Couldn't instantiate class RecordSimConfig".
+        try:
+            self._check()
+        except ValueError as e:
+            raise VIBConfigError(str(e)) from None
+
+    def _check(self) -> None:
         task = get_task(self.task)
         if self.repo_id is None:
             robot = "aloha_sim" if task.robot_type == "aloha" else "vib_arm"
@@ -77,7 +85,11 @@ class RecordSimConfig:
         if self.num_episodes < 1:
             raise ValueError(f"`num_episodes` must be >= 1, got {self.num_episodes}.")
         if self.image_height < 1 or self.image_width < 1:
-            raise ValueError(f"Bad image size {self.image_height}x{self.image_width}.")
+            raise ValueError(
+                f"`image_height` and `image_width` must be >= 1, got {self.image_height}x{self.image_width}."
+            )
+        if self.max_attempts is not None and self.max_attempts < 1:
+            raise ValueError(f"`max_attempts` must be >= 1 (seeds to try in this run), got {self.max_attempts}.")
 
 
 @parser.wrap()
@@ -123,9 +135,12 @@ def main() -> None:
 
     datasets.disable_progress_bars()  # one progress bar per saved episode otherwise
     logging.basicConfig(level=logging.INFO, format="%(levelname)s %(message)s")
+    # An import may already have configured the root logger (at WARNING), making basicConfig a no-op: the
+    # recorder's own messages (a dropped unfinished episode, kept files) must still reach the user.
+    logging.getLogger("lerobot_vib").setLevel(logging.INFO)
     try:
         record_sim()
-    except RecordingError as e:
+    except (RecordingError, VIBConfigError) as e:
         sys.exit(f"lerobot-vib-record-sim: {e}")
     except KeyboardInterrupt:
         sys.exit(_interrupted_message())

@@ -13,6 +13,7 @@ every failed attempt, so a run can be resumed (`resume=True`) without re-recordi
 from __future__ import annotations
 
 import contextlib
+import fnmatch
 import json
 import logging
 import os
@@ -36,9 +37,19 @@ from .sim_tasks import get_task
 
 logger = logging.getLogger(__name__)
 
-# What LeRobot writes under a dataset root; nothing else there is ever deleted or rewritten by the recorder.
+# Where LeRobot writes under a dataset root, and the files it writes there (its v3 path templates). Only these
+# are ever deleted or rewritten by the recorder; anything else a user puts there is kept and never checked.
 DATASET_DIRS = ("data", "meta", "videos", "images")
+EPISODE_FILES = (  # an episode's own files: what an unfinished one can have left
+    "data/chunk-*/file-*.parquet",
+    "meta/episodes/chunk-*/file-*.parquet",
+    "videos/*/chunk-*/file-*.mp4",
+    "images/*/episode-*/frame-*.png",
+)
 RESTORED_FILES = ("meta/info.json", "meta/stats.json")  # rewritten by every save: restored, not size-checked
+LEROBOT_FILES = (*EPISODE_FILES, *RESTORED_FILES, "meta/tasks.parquet")
+# info.json keys that saving an episode changes; any other change is an edit made outside this command.
+EPISODE_INFO_KEYS = ("total_episodes", "total_frames", "total_tasks", "splits")
 
 
 class RecordingError(ValueError):
@@ -110,8 +121,14 @@ def _fsync_dir(path: Path) -> None:
         os.close(fd)
 
 
-def _dataset_files(root: Path) -> dict[str, int]:
-    """Relative path -> size of every file LeRobot wrote under `root` (the sidecar excluded)."""
+def _matches(rel: str, patterns: tuple[str, ...]) -> bool:
+    """Whether a relative path fits one of the patterns, segment by segment (a * never crosses a /)."""
+    parts = rel.split("/")
+    return any(len(parts) == len(p.split("/")) and all(map(fnmatch.fnmatchcase, parts, p.split("/"))) for p in patterns)
+
+
+def _files_under(root: Path) -> dict[str, int]:
+    """Relative path -> size of every file under LeRobot's folders of `root` (the sidecar excluded)."""
     files = {}
     for top in DATASET_DIRS:
         for path in (root / top).rglob("*") if (root / top).is_dir() else ():
@@ -119,6 +136,32 @@ def _dataset_files(root: Path) -> dict[str, int]:
             if path.is_file() and not rel.startswith(SIDECAR):
                 files[rel] = path.stat().st_size
     return files
+
+
+def _dataset_files(root: Path) -> dict[str, int]:
+    """Relative path -> size of every file LeRobot wrote under `root`."""
+    return {rel: size for rel, size in _files_under(root).items() if _matches(rel, LEROBOT_FILES)}
+
+
+def _foreign_files(root: Path) -> list[str]:
+    """Files in LeRobot's folders of `root` that LeRobot does not write (a user's notes, labels, ...)."""
+    return sorted(rel for rel in _files_under(root) if not _matches(rel, LEROBOT_FILES))
+
+
+def _edited_info(root: Path, log: RecordingLog) -> list[str]:
+    """What changed in meta/info.json since the last saved episode, other than what saving an episode changes."""
+    saved = log.committed_meta.get("meta/info.json")
+    path = root / "meta/info.json"
+    if saved is None or not path.is_file():
+        return []
+    try:
+        now = json.loads(path.read_text())
+    except json.JSONDecodeError as e:
+        return [f"it is not valid JSON ({e})"]
+    edits = [f"added `{k}`" for k in now if k not in saved and k not in EPISODE_INFO_KEYS]
+    edits += [f"removed `{k}`" for k in saved if k not in now and k not in EPISODE_INFO_KEYS]
+    edits += [f"changed `{k}`" for k in saved if k in now and now[k] != saved[k] and k not in EPISODE_INFO_KEYS]
+    return edits
 
 
 def _commit(root: Path, log: RecordingLog) -> None:
@@ -157,7 +200,8 @@ def _adopt_uncommitted(root: Path, log: RecordingLog) -> None:
 
 def _rollback(root: Path, log: RecordingLog) -> list[str]:
     """Return the dataset to its state after the last saved episode: delete the files of an unfinished one,
-    restore info.json and stats.json. Refuses if a saved file changed. Returns the deleted paths."""
+    restore info.json and stats.json. Refuses, before touching anything, if a saved file changed or info.json
+    was edited. Files that LeRobot does not write are kept. Returns the deleted paths."""
     changed = [
         rel
         for rel, size in log.committed_files.items()
@@ -168,7 +212,18 @@ def _rollback(root: Path, log: RecordingLog) -> list[str]:
             f"Cannot repair {root}: files of saved episodes are missing or changed since they were saved "
             f"({', '.join(changed[:5])}{' ...' if len(changed) > 5 else ''}). Record it again with `--overwrite=true`."
         )
-    deleted = [rel for rel in _dataset_files(root) if rel not in log.committed_files and rel not in RESTORED_FILES]
+    edits = _edited_info(root, log)
+    if edits:
+        raise RecordingError(
+            f"Cannot resume {root}: meta/info.json was edited since the last saved episode ({'; '.join(edits)}), "
+            "and resuming restores it as it was then. Undo the edit (or keep an edited copy elsewhere) and resume "
+            "again. Nothing was changed."
+        )
+    deleted = [
+        rel
+        for rel in _dataset_files(root)
+        if rel not in log.committed_files and rel not in RESTORED_FILES and _matches(rel, EPISODE_FILES)
+    ]
     for rel in deleted:
         (root / rel).unlink()
     for rel, content in log.committed_meta.items():
@@ -272,6 +327,8 @@ def record_scripted_dataset(
     """
     task = get_task(settings.task)
     task.check_cameras(settings.cameras)
+    if max_attempts is not None and max_attempts < 1:
+        raise ValueError(f"`max_attempts` must be >= 1 (seeds to try in this run), got {max_attempts}.")
     if overwrite and resume:
         raise ValueError("Choose one of `overwrite` (start over) and `resume` (add to the dataset).")
     root = Path(root)
@@ -283,10 +340,12 @@ def record_scripted_dataset(
             "(`--overwrite` deletes only such datasets). Choose another `--root`."
         )
     foreign = sorted(p.name for p in root.iterdir() if p.name not in DATASET_DIRS) if ours else []
+    foreign += _foreign_files(root) if ours else []
     if foreign and (overwrite or not _saved_episodes(root)):
         raise RecordingError(
-            f"{root} holds files that are not part of the dataset ({', '.join(foreign)}); move them elsewhere "
-            "before starting the dataset over. Nothing was deleted."
+            f"{root} holds files that are not part of the dataset ({', '.join(foreign[:8])}"
+            f"{' ...' if len(foreign) > 8 else ''}); move them elsewhere before starting the dataset over. "
+            "Nothing was deleted."
         )
     if ours and not (resume or overwrite):
         raise RecordingError(
@@ -307,6 +366,9 @@ def record_scripted_dataset(
         deleted = _rollback(root, log)
         if deleted:
             logger.info("Dropped the unfinished episode of an interrupted run (%d files).", len(deleted))
+        kept = _foreign_files(root)
+        if kept:
+            logger.info("Kept %d files that are not LeRobot's: %s", len(kept), ", ".join(kept[:8]))
         if not log.episode_seeds:
             _delete_dataset(root)
     else:
@@ -362,7 +424,10 @@ def record_scripted_dataset(
                 dataset.finalize()
         if (root / SIDECAR).is_file():
             if log.episode_seeds:
-                _rollback(root, log)
+                try:
+                    _rollback(root, log)
+                except RecordingError as e:  # the next resume refuses with the same message
+                    logger.warning("%s", e)
             else:
                 _delete_dataset(root)
         raise
