@@ -28,7 +28,7 @@ from datetime import datetime
 from pathlib import Path
 
 import torch
-from report import cpu_name, emit
+from report import as_typed, cpu_name, emit
 
 from lerobot_vib.metrics import wilson_interval
 from lerobot_vib.scripts.benchmark import act_recipe_flags
@@ -77,10 +77,10 @@ def train(variant: str, preset_path: Path, preset: dict, args) -> Path:
     cmd = train_command(variant, preset_path, preset, args, out)
     if last.exists():  # an interrupted training: LeRobot resumes from its last checkpoint
         cmd = [cmd[0], f"--config_path={last / 'train_config.json'}", "--resume=true"]
-    print(f"{variant}: {' '.join(cmd)}", flush=True)
+    print(f"{variant}: {as_typed(cmd)}", flush=True)
     log.parent.mkdir(parents=True, exist_ok=True)
     with (args.out / variant / "command.txt").open("a") as f:
-        f.write(" ".join(cmd) + "\n")
+        f.write(as_typed(cmd) + "\n")
     with log.open("a") as f:
         subprocess.run(cmd, stdout=f, stderr=subprocess.STDOUT, check=True, env={**os.environ, "MUJOCO_GL": "egl"})
     return out
@@ -108,12 +108,12 @@ def evaluate(checkpoint: Path, args, out: Path, extra: list[str] = ()) -> dict:
     ]
     kept = out / "eval_command.txt"
     if info_path.exists():
-        if kept.exists() and kept.read_text().strip() != " ".join(cmd):
+        if kept.exists() and kept.read_text().strip() not in (as_typed(cmd), " ".join(cmd)):
             raise SystemExit(f"{out} holds an evaluation made with other flags:\n{kept.read_text()}")
     else:
-        print(" ".join(cmd), flush=True)
+        print(as_typed(cmd), flush=True)
         subprocess.run(cmd, check=True, capture_output=True, env={**os.environ, "MUJOCO_GL": "egl"})
-        kept.write_text(" ".join(cmd) + "\n")
+        kept.write_text(as_typed(cmd) + "\n")
     overall = json.loads(info_path.read_text())["overall"]
     return dict(success=round(overall["pc_success"] * overall["n_episodes"] / 100), n=overall["n_episodes"])
 

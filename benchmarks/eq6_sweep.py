@@ -26,6 +26,7 @@ import argparse
 import json
 import math
 import os
+import shlex
 import sys
 import time
 from pathlib import Path
@@ -171,7 +172,7 @@ def report(args) -> str:
         f"chunk_size {chunk}, n_action_steps {config['n_action_steps']}; the stop off. Rollouts on {cpu_name()}, "
         f"torch {torch.__version__}. One training seed.",
         "",
-        "Command: `python " + " ".join(args.argv) + "`",
+        "Command: `python " + shlex.join(args.argv) + "`",
         "",
         f"Chosen on validation (seeds {SPLIT_SEEDS['validation']}..): "
         + ", ".join(f"{k}: **{v}**" for k, v in chosen.items())
@@ -229,6 +230,13 @@ def main() -> None:
             n = {"clean": args.episodes_clean, "occlusion": args.episodes_occlusion}
         run(args, path, split, n)
     emit(report(args), args.report)
+    if args.report:  # every episode's seed and outcome, beside the report (the u traces stay in --out)
+        results = {
+            split: {row: {c: [[e["seed"], e["success"]] for e in cell["episodes"]] for c, cell in cells.items()}
+                    for row, cells in load(args.out, split, args.coeffs).items()}
+            for split in SPLIT_SEEDS
+        }  # fmt: skip
+        (args.report.parent / "results.json").write_text(json.dumps(results))
 
 
 if __name__ == "__main__":

@@ -4,7 +4,10 @@ from __future__ import annotations
 
 import os
 import platform
+import sys
 from pathlib import Path
+
+PROJECT = Path(__file__).resolve().parents[1]
 
 
 def cpu_name() -> str:
@@ -25,3 +28,12 @@ def emit(table: str, output: Path | None) -> None:
     if output:
         output.parent.mkdir(parents=True, exist_ok=True)
         output.write_text(table)
+
+
+def as_typed(cmd: list[str]) -> str:
+    """A command as a user would type it in the project folder: the venv's entry points by name, paths under
+    the project relative to it (reports travel; the machine's folders do not)."""
+    bin_dir = str(Path(sys.executable).parent) + "/"
+    project = str(PROJECT) + "/"
+    words = [w[len(bin_dir) :] if w.startswith(bin_dir) else w for w in cmd]
+    return " ".join(w.replace(project, "") for w in words)

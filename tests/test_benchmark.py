@@ -241,3 +241,18 @@ def test_act_is_trained_with_the_vib_presets_augmentation_and_schedule(tmp_path)
     assert act.optimizer == vib.optimizer and act.scheduler == vib.scheduler
     assert act.scheduler.num_warmup_steps == 25 and act.optimizer.lr == 3e-4
     assert act.policy.n_encoder_layers == preset["policy"]["n_layers"] and act.policy.chunk_size == 20
+
+
+def test_queue_rows_keep_half_a_chunk_when_the_preset_ensembles():
+    """The arm preset acts with ACT's ensembling (n_action_steps 1): the benchmark's queue rows still execute
+    10 of 20 actions per chunk, as they did, for ACT and for VIB."""
+    from helpers import make_config
+    from lerobot_vib.modeling_vib import VIBPolicy
+    from lerobot_vib.variants import vib_with
+
+    preset = json.loads((Path(benchmark.__file__).parents[3] / "configs/policy/vib_arm_sim.json").read_text())
+    assert (preset["policy"]["temporal_ensemble"], preset["policy"]["n_action_steps"]) == ("act", 1)
+    assert "--policy.n_action_steps=10" in benchmark.act_recipe_flags(preset)
+    policy = VIBPolicy(make_config(chunk_size=20, n_action_steps=1, temporal_ensemble="act"))
+    assert vib_with(policy, "none").config.n_action_steps == 10
+    assert vib_with(policy, "uncertainty").config.n_action_steps == 1

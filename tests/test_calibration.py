@@ -376,3 +376,30 @@ def test_calibrate_command_sets_a_time_indexed_band_from_the_rollouts_trace_by_d
     assert band[0] > 3.0 and band[3] < 1.2  # a u of 2 stops late in a rollout, not at its start
     policy = VIBPolicy.from_pretrained(ckpt)
     assert [policy.stop_threshold(step=t) for t in (0, 3, 99)] == [band[0], band[3], band[5]]
+
+
+def test_the_model_card_states_the_data_score_r_bar_gamma_its_method_and_the_measured_success(monkeypatch):
+    from dataclasses import replace
+
+    from huggingface_hub import ModelCard
+
+    from helpers import make_config
+    from lerobot_vib.configuration_vib import CalibrationConfig
+    from lerobot_vib.scripts.calibrate import gamma_from_rollouts
+
+    monkeypatch.setattr(ModelCard, "validate", lambda self, *a, **k: None)  # validation is an online call
+    rollouts = _rollouts([float(i) for i in range(1, 11)], 2.0)
+    for i, ep in enumerate(rollouts["per_episode"]):
+        ep["success"] = i < 7
+    rollouts["command"] = "lerobot-vib-eval --policy.path=ckpt --env.type=vib_arm --eval.n_episodes=10"
+    dataset = CalibrationConfig(dataset_repo_id="local/arm", n_frames=5000, rate_mean=2.0, rate_std=0.5)
+    calibration = gamma_from_rollouts(dataset, rollouts, alpha=0.1, source="r.json", threshold="max")
+    policy = VIBPolicy(make_config(uncertainty_score="rate"))
+    policy.config.calibration = replace(calibration)
+    text = policy.generate_model_card("local/arm", "vib", None, None).text
+    assert "Training data: `local/arm`" in text and "5000 frames" in text
+    assert "Score: `rate`" in text and "R_bar (the rate's mean) = 2" in text
+    assert "gamma = 10 on `rate`, set by split-conformal on the maximum u of 10 clean rollouts at alpha = 0.1" in text
+    assert "Measured: 7/10 clean rollouts succeeded (`lerobot-vib-eval --policy.path=ckpt" in text
+    bare = VIBPolicy(make_config(uncertainty_score="rate")).generate_model_card("local/arm", "vib", None, None).text
+    assert "Not calibrated" in bare and "no evaluation is recorded" in bare

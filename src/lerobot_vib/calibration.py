@@ -134,3 +134,77 @@ def rate_statistics(
     if not rates:
         raise ValueError("No frames to calibrate on.")
     return RateStatistics(torch.cat(rates), torch.cat(episodes))
+
+
+def stop_threshold(config, running: RateTracker, step: int) -> float:
+    """gamma at episode step `step` for a VIBConfig `config`, in this order: `safety.gamma`; else the
+    calibrated threshold if it was set on the configured score (a time-indexed band's value at that step);
+    else mean(u) + 2 std(u) of that score over the calibration frames (for the rate: from training, `running`).
+    NaN when none is known."""
+    if config.safety.gamma is not None:
+        return config.safety.gamma
+    calibration = config.calibration
+    score = config.uncertainty_score
+    if calibration.gamma is not None and (calibration.gamma_score or "rate") == score:
+        if calibration.gamma_band:
+            return calibration.gamma_band[min(step, len(calibration.gamma_band) - 1)]
+        return calibration.gamma
+    if score != "rate":
+        mean, std = calibration.score_means.get(score), calibration.score_stds.get(score)
+        return mean_plus_2std_gamma(mean, std) if mean is not None and std is not None else math.nan
+    if calibration.rate_mean is not None and calibration.rate_std is not None:
+        return mean_plus_2std_gamma(calibration.rate_mean, calibration.rate_std)
+    return mean_plus_2std_gamma(running.mean, running.std)
+
+
+_GAMMA_METHODS = {
+    "mean_plus_2std": "mean + 2 std of u over the calibration frames (the paper's rule)",
+    "conformal": "split-conformal on the maximum u of {n} held-out dataset episodes at alpha = {alpha}",
+    "conformal_rollouts": "split-conformal on the maximum u of {n} clean rollouts at alpha = {alpha}: at most "
+    "that share of clean rollouts should stop",
+    "time_band_rollouts": "a time-indexed band (one threshold per episode step) from {n} clean rollouts at "
+    "alpha = {alpha}; gamma is its largest value",
+}
+
+
+def describe_calibration(config, rate_mean: float, training_data: str | None = None) -> str:
+    """The model card's account of a VIB policy's uncertainty: its data, score, R_bar, gamma and how gamma was
+    set, the stop's settings, and the success measured on the rollouts gamma was set on (with their command).
+    `config`: a VIBConfig; `rate_mean`: the R_bar the policy uses."""
+    c, safety = config.calibration, config.safety
+    score = config.uncertainty_score or "rate"
+    lines = ["## Uncertainty and the safety stop", ""]
+    data = training_data or c.dataset_repo_id or "not recorded"
+    lines.append(f"- Training data: `{data}`.")
+    if c.dataset_repo_id:
+        episodes = "all episodes" if c.episodes is None else f"episodes {c.episodes}"
+        lines.append(f"- Calibrated on `{c.dataset_repo_id}` ({episodes}, {c.n_frames} frames).")
+    else:
+        lines.append("- Not calibrated: R_bar is the running mean kept during training (`lerobot-vib-calibrate`).")
+    mean = c.score_means.get(score)
+    normalizer = f"its training mean {mean:.4g}" if mean is not None else "its training mean"
+    lines.append(f"- Score: `{score}`; u = the score over {normalizer}. R_bar (the rate's mean) = {rate_mean:.4g}.")
+    if c.gamma is None:
+        lines.append(
+            "- Stop threshold gamma: not set on this policy's data or rollouts (the stop would use mean + 2 std)."
+        )
+    else:
+        n = len(c.rollout_seeds or c.conformal_episodes or [])
+        how = _GAMMA_METHODS.get(c.gamma_method or "", c.gamma_method or "unknown").format(n=n, alpha=c.conformal_alpha)
+        lines.append(f"- Stop threshold gamma = {c.gamma:.4g} on `{c.gamma_score or 'rate'}`, set by {how}.")
+    lines.append(
+        f"- Safety stop: {'on' if safety.enabled else 'off (enable with `--policy.safety.enabled=true`)'}; action "
+        f"`{safety.action}`, resumes after {safety.resume_steps} calm steps, halts after {safety.max_hold_steps}."
+    )
+    if c.rollout_successes is not None and c.rollout_seeds:
+        command = f" (`{c.rollout_command}`)" if c.rollout_command else ""
+        lines.append(
+            f"- Measured: {c.rollout_successes}/{len(c.rollout_seeds)} clean rollouts succeeded{command}, seeds "
+            f"{min(c.rollout_seeds)}-{max(c.rollout_seeds)}."
+        )
+    else:
+        lines.append(
+            "- Measured: no evaluation is recorded in this checkpoint (`lerobot-vib-eval`, then "
+            "`lerobot-vib-calibrate --rollouts=...` records one)."
+        )
+    return "\n".join(lines) + "\n"

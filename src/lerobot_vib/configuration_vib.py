@@ -94,6 +94,11 @@ class SafetyConfig:
             if value is not None and not (math.isfinite(value) and value > 0):
                 raise VIBConfigError(f"`safety.{name}` must be a positive finite number, got {value}.")
 
+    def check_action_dim(self, action_dim: int) -> None:
+        """The home pose has one value per action dimension (known once the features are)."""
+        if self.home_pose is not None and len(self.home_pose) != action_dim:
+            raise ValueError(f"`safety.home_pose` has {len(self.home_pose)} values, the action has {action_dim}.")
+
 
 @dataclass
 class CalibrationConfig:
@@ -113,6 +118,8 @@ class CalibrationConfig:
         conformal_alpha: Target per-episode false-stop rate of the conformal threshold.
         conformal_episodes: The held-out episodes the conformal threshold was computed on.
         rollout_seeds: The env seeds of the rollouts a "conformal_rollouts" gamma was computed on.
+        rollout_successes: How many of those rollouts succeeded (what the model card reports as measured).
+        rollout_command: The `lerobot-vib-eval` command that made them, as it was typed.
         score_means: Mean over the calibration frames of every other score (`scores.py`), by name: each
             normalizes its u as R_bar does the rate's.
         score_stds: Their standard deviations over the same frames.
@@ -138,6 +145,8 @@ class CalibrationConfig:
     conformal_alpha: float | None = None
     conformal_episodes: list[int] | None = None
     rollout_seeds: list[int] | None = None
+    rollout_successes: int | None = None
+    rollout_command: str | None = None
     score_means: dict[str, float] = field(default_factory=dict)
     score_stds: dict[str, float] = field(default_factory=dict)
     gamma_score: str | None = None
@@ -428,11 +437,7 @@ class VIBConfig(PreTrainedConfig):
                 f"`uncertainty_score={self.uncertainty_score}` reads the camera path, and this policy has no camera: "
                 "use `rate` (or `embedding_rnd`, `chunk_disagreement`)."
             )
-        home = self.safety.home_pose
-        if home is not None and len(home) != self.action_feature.shape[0]:
-            raise ValueError(
-                f"`safety.home_pose` has {len(home)} values, the action has {self.action_feature.shape[0]}."
-            )
+        self.safety.check_action_dim(self.action_feature.shape[0])
         state_keys = [
             k for k, ft in (self.input_features or {}).items() if ft.type is FeatureType.STATE and k != OBS_STATE
         ]

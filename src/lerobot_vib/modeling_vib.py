@@ -36,12 +36,13 @@ from torch import Tensor, nn
 
 from .backbone import build_resnet_trunk
 from .bottleneck import GaussianBottleneck, Posterior
-from .calibration import RateTracker, mean_plus_2std_gamma
+from .calibration import RateTracker, describe_calibration, stop_threshold
 from .configuration_vib import VIBConfig
 from .ema import make_ema
+from .inputs import check_observation, check_training_batch
 from .processor_vib import vib_dataset_stats
 from .runtime import ChunkRuntime
-from .safety import RobotUnits, SafetyAction, SafetyMonitor
+from .safety import PolicySafetyAction, RobotUnits, SafetyMonitor
 from .scores import ChunkDisagreement, EmbeddingRND
 
 logger = logging.getLogger(__name__)
@@ -333,7 +334,8 @@ class VIBPolicy(PreTrainedPolicy):
             ) from e
 
     def generate_model_card(self, *args: Any, **kwargs: Any) -> ModelCard:
-        """LeRobot's card, with what the policy is and the plugin it needs to load."""
+        """LeRobot's card, with what the policy is, the plugin it needs to load, and its uncertainty: the data,
+        the score, R_bar, gamma and how it was set, and the success measured where gamma was set."""
         card = super().generate_model_card(*args, **kwargs)
         generic = f"This is a **{self.name}** policy trained with [LeRobot](https://github.com/huggingface/lerobot)."
         if generic in card.text:
@@ -341,6 +343,8 @@ class VIBPolicy(PreTrainedPolicy):
         else:
             card.text = MODEL_CARD_INTRO + "\n\n" + card.text
         card.data.tags = sorted(set(card.data.tags or []) | {"vib", "uncertainty"})
+        dataset = kwargs.get("dataset_repo_id", args[0] if args else None)
+        card.text = card.text.rstrip("\n") + "\n\n" + describe_calibration(self.config, self.rate_mean(), dataset)
         return card
 
     def get_optim_params(self) -> list[dict]:
@@ -391,24 +395,8 @@ class VIBPolicy(PreTrainedPolicy):
         return self.config.calibration.score_means.get(score, math.nan)
 
     def stop_threshold(self, step: int | None = None) -> float:
-        """gamma at episode step `step` (default: the current one): `safety.gamma`, else the calibrated threshold
-        if it was set on the configured score (a time-indexed band's value at that step), else mean(u) + 2
-        std(u) of that score from the calibration frames (for the rate: from training)."""
-        if self.config.safety.gamma is not None:
-            return self.config.safety.gamma
-        calibration = self.config.calibration
-        score = self.config.uncertainty_score
-        if calibration.gamma is not None and (calibration.gamma_score or "rate") == score:
-            if calibration.gamma_band:
-                t = self._episode_step if step is None else step
-                return calibration.gamma_band[min(t, len(calibration.gamma_band) - 1)]
-            return calibration.gamma
-        if score != "rate":
-            mean, std = calibration.score_means.get(score), calibration.score_stds.get(score)
-            return mean_plus_2std_gamma(mean, std) if mean is not None and std is not None else math.nan
-        if calibration.rate_mean is not None and calibration.rate_std is not None:
-            return mean_plus_2std_gamma(calibration.rate_mean, calibration.rate_std)
-        return mean_plus_2std_gamma(self.rate_tracker.mean, self.rate_tracker.std)
+        """gamma at episode step `step` (default: the current one); calibration.py's `stop_threshold` says how."""
+        return stop_threshold(self.config, self.rate_tracker, self._episode_step if step is None else step)
 
     def _start_episode(self) -> None:
         r_bar = self.rate_mean()
@@ -471,52 +459,12 @@ class VIBPolicy(PreTrainedPolicy):
     # ---------------------------------------------------------------------------------------------- input checks
 
     def _check_observation(self, batch: dict[str, Tensor]) -> int:
-        """Raise a clear error for a missing key or a wrong shape; return the batch size."""
-        expected = self._used_inputs
-        batch_size = None
-        for key, ft in expected.items():
-            if key not in batch:
-                raise KeyError(
-                    f"Observation is missing `{key}`, which this policy was configured with "
-                    f"(expects {sorted(expected)}; got {sorted(k for k in batch if k.startswith('observation'))})."
-                )
-            value = batch[key]
-            if not isinstance(value, Tensor):
-                raise TypeError(f"`{key}` must be a torch.Tensor, got {type(value).__name__}.")
-            if not value.is_floating_point() or value.dtype != self._param_dtype():
-                hint = " (images as floats in [0, 1], as LeRobot's env processors give them)" if "image" in key else ""
-                raise TypeError(
-                    f"`{key}` has dtype {value.dtype}; the policy expects {self._param_dtype()}{hint}. "
-                    "Pass observations through the policy's preprocessor (make_pre_post_processors)."
-                )
-            if tuple(value.shape[1:]) != tuple(ft.shape):
-                raise ValueError(
-                    f"`{key}` has shape {tuple(value.shape)}; expected (batch, {', '.join(map(str, ft.shape))}) "
-                    "as configured. Check the camera resolution / state size against the training data (in the "
-                    "ALOHA sim, `--env.type=aloha_fast --env.observation_height=H --env.observation_width=W` "
-                    "renders at the training size)."
-                )
-            if batch_size is None:
-                batch_size = value.shape[0]
-            elif value.shape[0] != batch_size:
-                raise ValueError(f"`{key}` has batch size {value.shape[0]}, other inputs have {batch_size}.")
-        return int(batch_size)
-
-    def _param_dtype(self) -> torch.dtype:
-        return next(self.parameters()).dtype
+        """Raise a clear error for a missing key, a wrong dtype or shape; return the batch size (inputs.py)."""
+        return check_observation(batch, self._used_inputs, next(self.parameters()).dtype)
 
     def _check_training_batch(self, batch: dict[str, Tensor], batch_size: int) -> None:
-        if ACTION not in batch:
-            raise KeyError(f"Training batch is missing `{ACTION}`.")
-        expected = (batch_size, self.config.chunk_size, self.config.action_feature.shape[0])
-        if tuple(batch[ACTION].shape) != expected:
-            raise ValueError(
-                f"`{ACTION}` has shape {tuple(batch[ACTION].shape)}; expected {expected} "
-                "(batch, chunk_size, action_dim). Is the dataset loaded with `action_delta_indices`?"
-            )
-        for key in [*self._used_inputs, ACTION]:
-            if key in batch and not torch.isfinite(batch[key]).all():
-                raise ValueError(f"Training batch has non-finite values (NaN or inf) in `{key}`.")
+        action_dim = self.config.action_feature.shape[0]
+        check_training_batch(batch, [*self._used_inputs], batch_size, self.config.chunk_size, action_dim)
 
     # --------------------------------------------------------------------------------------------- inference
 
@@ -647,31 +595,11 @@ class VIBPolicy(PreTrainedPolicy):
         return posterior, scores
 
     def _safety_action(self, batch: dict[str, Tensor], batch_size: int, last_command: Tensor | None) -> Tensor:
-        """`hold` (the last command) or a bounded step towards `home`, in the policy's normalized space."""
+        """What a stopped env emits, in the policy's normalized space (safety.py's `PolicySafetyAction`)."""
         safety = self.config.safety
+        act = PolicySafetyAction(safety.action, safety.home_pose, safety.home_max_step, self.robot_units)
         halted = self.runtime.monitor.halted if self.runtime.monitor is not None else None
-        going_home = safety.home_pose is not None and halted is not None and bool(halted.any())
-        if safety.action == "hold" and last_command is not None and not going_home:
-            return last_command
-        # Robot units from here on: the home pose and its per-step bound are physical.
-        last = None if last_command is None else self.robot_units.to_robot(ACTION, last_command)
-        measured = None
-        state = batch.get(OBS_STATE)
-        if (
-            last is None
-            and state is not None
-            and state.shape[-1] == self.config.action_feature.shape[0]
-            and self.robot_units.known(OBS_STATE)
-        ):
-            measured = self.robot_units.to_robot(OBS_STATE, state)  # joint-position robots: state = action space
-        home = None
-        if safety.home_pose is not None:
-            home = torch.tensor(safety.home_pose, dtype=torch.float32, device=self.config.device)
-        action = SafetyAction(safety.action, home, safety.home_max_step)(last, measured, batch_size)
-        if going_home and safety.action == "hold":  # a halted env goes home; the others keep holding
-            homeward = SafetyAction("home", home, safety.home_max_step)(action, None, batch_size)
-            action = torch.where(halted.to(action.device).unsqueeze(-1), homeward, action)
-        return self.robot_units.to_policy(ACTION, action)
+        return act(last_command, batch.get(OBS_STATE), halted, batch_size, self.config.device)
 
     # -------------------------------------------------------------------------------------------------- train
 

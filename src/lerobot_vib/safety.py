@@ -26,7 +26,7 @@ from dataclasses import dataclass
 import torch
 from lerobot.configs.types import FeatureType, NormalizationMode, PolicyFeature
 from lerobot.processor import NormalizerProcessorStep, TransitionKey, UnnormalizerProcessorStep, create_transition
-from lerobot.utils.constants import ACTION
+from lerobot.utils.constants import ACTION, OBS_STATE
 from torch import Tensor, nn
 
 
@@ -249,3 +249,43 @@ class RobotUnits(nn.Module):
 
     def to_policy(self, key: str, value: Tensor) -> Tensor:
         return self._transform(key, value, inverse=False)
+
+
+class PolicySafetyAction:
+    """The safety action of a policy that acts in normalized space: `SafetyAction` in robot units, converted
+    with the policy's dataset statistics (`RobotUnits`), since a home pose and its per-step bound are physical.
+
+    `hold` repeats the last command (at the very first step: the measured joint positions, for robots whose
+    state is in the action space, else the home pose); `home` steps towards `home_pose`. A halted env goes
+    home when a home pose is configured, whatever the mode; the other envs keep their mode.
+    """
+
+    def __init__(self, mode: str, home_pose: list[float] | None, max_step: float, units: RobotUnits):
+        self.mode, self.home_pose, self.max_step, self.units = mode, home_pose, max_step, units
+
+    def __call__(
+        self,
+        last_command: Tensor | None,
+        state: Tensor | None,
+        halted: Tensor | None,
+        batch_size: int,
+        device: torch.device | str = "cpu",
+    ) -> Tensor:
+        """last_command, state: (B, A) / (B, S) normalized, or None; halted: (B,) bool or None. Returns (B, A)."""
+        going_home = self.home_pose is not None and halted is not None and bool(halted.any())
+        if self.mode == "hold" and last_command is not None and not going_home:
+            return last_command
+        units = self.units
+        last = None if last_command is None else units.to_robot(ACTION, last_command)
+        measured = None
+        action_dim = units.features[ACTION].shape[0]
+        if last is None and state is not None and state.shape[-1] == action_dim and units.known(OBS_STATE):
+            measured = units.to_robot(OBS_STATE, state)  # joint-position robots: state = action space
+        home = None
+        if self.home_pose is not None:
+            home = torch.tensor(self.home_pose, dtype=torch.float32, device=device)
+        action = SafetyAction(self.mode, home, self.max_step)(last, measured, batch_size)
+        if going_home and self.mode == "hold":
+            homeward = SafetyAction("home", home, self.max_step)(action, None, batch_size)
+            action = torch.where(halted.to(action.device).unsqueeze(-1), homeward, action)
+        return units.to_policy(ACTION, action)

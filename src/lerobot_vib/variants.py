@@ -45,6 +45,12 @@ from .safety import SafetyAction, SafetyMonitor
 ENSEMBLE_COEFF = 0.01  # ACT's default m, for every ensembling row
 
 
+def queue_steps(chunk_size: int, n_action_steps: int, ensembles: bool) -> int:
+    """Actions a queue row executes per chunk: the checkpoint's own queue, or half a chunk when the checkpoint
+    was configured to ensemble (n_action_steps 1: the arm preset, whose queue was 10 of 20 before)."""
+    return max(chunk_size // 2, 1) if ensembles and n_action_steps == 1 else n_action_steps
+
+
 @dataclass(frozen=True)
 class Variant:
     label: str  # as in the paper's Table I
@@ -167,6 +173,9 @@ class ScoredChunkPolicy(PreTrainedPolicy):
 def vib_with(vib: VIBPolicy, ensemble: str) -> VIBPolicy:
     """The VIB checkpoint run with another ensembling mode (its own `select_action`), the stop off."""
     config = copy.deepcopy(vib.config)
+    if ensemble == "none":
+        ensembles = config.temporal_ensemble != "none"
+        config.n_action_steps = queue_steps(config.chunk_size, config.n_action_steps, ensembles)
     config.temporal_ensemble = ensemble
     config.temporal_ensemble_coeff = ENSEMBLE_COEFF
     config.safety.enabled = False

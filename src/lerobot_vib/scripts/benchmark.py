@@ -51,8 +51,9 @@ from ..configuration_vib import VIBConfigError
 from ..modeling_vib import VIBPolicy
 from ..rnd import RND, RNDConfig, train_rnd
 from ..sim import env_config  # noqa: F401  (registers --env.type=aloha_fast and vib_arm)
-from ..sim.perturbations import PerturbationConfig
-from ..variants import VARIANTS, build_variant
+from ..sim.perturbations import CONDITIONS, SCENE_CONDITIONS
+from ..variants import VARIANTS, build_variant, queue_steps
+from .benchmark_report import write_report
 from .eval_uncertainty import UncertaintyCapture
 
 logger = logging.getLogger(__name__)
@@ -73,15 +74,6 @@ ACT_FROM_VIB = {
     "optimizer_weight_decay": "optimizer_weight_decay",
 }
 
-CONDITIONS: dict[str, PerturbationConfig] = {
-    "normal": PerturbationConfig(),
-    "gaussian": PerturbationConfig(noise_std=[0.0, 0.05, 0.1]),
-    "color": PerturbationConfig(color_jitter=0.2, color_jitter_p=0.5),
-    "camera_shake": PerturbationConfig(camera_shake=0.005),
-    "unseen_block": PerturbationConfig(unseen_block=True),
-    "occlusion": PerturbationConfig(occlusion=True),
-}
-SCENE_CONDITIONS = ("camera_shake", "unseen_block", "occlusion")
 CALIBRATION = "calibration"  # clean rollouts on their own seeds, for the thresholds
 MAIN_VARIANTS = ("vib", "act")  # the rows that get `n_episodes`; the others get `n_episodes_other`
 
@@ -250,7 +242,10 @@ def act_recipe_flags(preset: dict) -> list[str]:
     explicit optimizer and scheduler (`use_policy_training_preset=false`), so both networks see the same
     learning rate at every step.
     """
-    policy = preset["policy"]
+    policy = dict(preset["policy"])
+    # ACT's own row runs its action queue: a preset that ensembles (n_action_steps 1) gives it half a chunk.
+    ensembles = policy.get("temporal_ensemble", "none") != "none"
+    policy["n_action_steps"] = queue_steps(policy["chunk_size"], policy.get("n_action_steps", 1), ensembles)
     flags = [f"--policy.{ACT_FROM_VIB[k]}={v}" for k, v in policy.items() if k in ACT_FROM_VIB]
     transforms = preset.get("dataset", {}).get("image_transforms")
     if transforms:
@@ -393,8 +388,6 @@ def planned_cells(cfg: BenchmarkConfig) -> list[tuple[str, str]]:
 
 
 def run_benchmark(cfg: BenchmarkConfig) -> dict:
-    from .benchmark_report import write_report
-
     started = time.time()
     cfg.output_dir.mkdir(parents=True, exist_ok=True)
     check_resumable(cfg)
@@ -482,8 +475,19 @@ def _add_wall_time(cfg: BenchmarkConfig, seconds: float) -> float:
     return total
 
 
+def _portable(path: Path | str | None) -> str | None:
+    """A path under the project relative to it, so that a committed report names no machine's folders."""
+    if path is None:
+        return None
+    try:
+        return Path(path).resolve().relative_to(CONFIGS.parents[1]).as_posix()
+    except ValueError:
+        return str(path)
+
+
 def _config_record(cfg: BenchmarkConfig) -> dict:
     record = json.loads(json.dumps(dataclasses.asdict(cfg), default=str))
+    record["preset"] = _portable(cfg.preset)
     record["env_type"] = cfg.env.type
     record["command"] = " ".join(["lerobot-vib-benchmark", *sys.argv[1:]])
     record["machine"] = {"platform": platform.platform(), "processor": platform.processor(), "cpus": os.cpu_count()}

@@ -17,7 +17,7 @@ import numpy as np
 
 from ..calibration import conformal_gamma, conformal_min_scores
 from ..metrics import auroc, roc_curve, stop_metrics, time_indexed_band, wilson_interval
-from ..sim.perturbations import draw_scene_episode
+from ..sim.perturbations import CONDITIONS, draw_scene_episode
 from ..variants import VARIANTS
 
 logger = logging.getLogger(__name__)
@@ -49,8 +49,6 @@ def thresholds(calibration: dict, train_gamma: float | None, alpha: float) -> di
 
 
 def occlusion_onsets(cell: dict) -> list[int | None]:
-    from .benchmark import CONDITIONS
-
     return [draw_scene_episode(CONDITIONS["occlusion"], seed).occluded_steps.start for seed in cell["seeds"]]
 
 

@@ -451,6 +451,10 @@ def gamma_from_rollouts(
         conformal_alpha=alpha,
         conformal_episodes=None,
         rollout_seeds=[ep["seed"] for ep in info["per_episode"] if ep.get("seed") is not None],
+        rollout_successes=sum(bool(ep["success"]) for ep in info["per_episode"])
+        if all("success" in ep for ep in info["per_episode"])
+        else None,
+        rollout_command=info.get("command"),
         frames_above_gamma=None,
         episodes_above_gamma=float(np.mean(above)),
     )

@@ -23,6 +23,7 @@ import csv
 import json
 import logging
 import math
+import sys
 from collections.abc import Callable, Iterator
 from contextlib import contextmanager
 from pathlib import Path
@@ -246,6 +247,7 @@ def eval_with_uncertainty(cfg: EvalPipelineConfig) -> dict:
     out = Path(cfg.output_dir)
     episodes = record.kept(cfg.eval.n_episodes, cfg.eval.batch_size)
     info = summarize(episodes, json.loads((out / "eval_info.json").read_text()))
+    info["command"] = " ".join(["lerobot-vib-eval", *sys.argv[1:]])  # the model card cites it
     (out / "uncertainty_info.json").write_text(json.dumps(info, indent=2))
     write_trace(episodes, out / "uncertainty_trace.csv")
     o = info["overall"]

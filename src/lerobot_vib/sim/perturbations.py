@@ -163,6 +163,18 @@ UNSEEN_BLOCKS = (  # (rgba, half size): colours and sizes the training data neve
 )
 
 
+# The paper's evaluation conditions at its strengths (Tables I, III, IV): what `lerobot-vib-benchmark` runs.
+CONDITIONS: dict[str, PerturbationConfig] = {
+    "normal": PerturbationConfig(),
+    "gaussian": PerturbationConfig(noise_std=[0.0, 0.05, 0.1]),
+    "color": PerturbationConfig(color_jitter=0.2, color_jitter_p=0.5),
+    "camera_shake": PerturbationConfig(camera_shake=0.005),
+    "unseen_block": PerturbationConfig(unseen_block=True),
+    "occlusion": PerturbationConfig(occlusion=True),
+}
+SCENE_CONDITIONS = ("camera_shake", "unseen_block", "occlusion")  # these need the simulated arm
+
+
 def draw_scene_episode(config: PerturbationConfig, seed: int | None) -> SceneEpisode:
     rng = np.random.default_rng(None if seed is None else [seed, SCENE_SALT])
     rgba = half = None
