@@ -256,3 +256,36 @@ def test_queue_rows_keep_half_a_chunk_when_the_preset_ensembles():
     policy = VIBPolicy(make_config(chunk_size=20, n_action_steps=1, temporal_ensemble="act"))
     assert vib_with(policy, "none").config.n_action_steps == 10
     assert vib_with(policy, "uncertainty").config.n_action_steps == 1
+
+
+def test_wall_time_counts_every_invocation_a_killed_one_included(tmp_path):
+    import signal
+    import subprocess
+    import sys
+    import time
+
+    path = tmp_path / "wall_time.json"
+    path.write_text(json.dumps({"seconds": 5.0}))  # finished invocations of an older version
+    script = (
+        "import sys, time; from pathlib import Path; from lerobot_vib.scripts.benchmark import WallClock\n"
+        "WallClock(Path(sys.argv[1]), beat=0.05).__enter__(); time.sleep(600)\n"
+    )
+    proc = subprocess.Popen([sys.executable, "-c", script, str(path)])
+    deadline = time.time() + 120
+    while time.time() < deadline:
+        record = json.loads(path.read_text())
+        if record.get("invocations") and record["invocations"][-1]["end"] - record["invocations"][-1]["start"] > 1.0:
+            break
+        time.sleep(0.1)
+    proc.send_signal(signal.SIGKILL)
+    proc.wait()
+    killed = benchmark.WallClock.total(path)
+    assert killed >= 6.0  # 5 s from before, and the killed run up to its last beat
+
+    with benchmark.WallClock(path, beat=0.05):
+        time.sleep(0.3)
+        running = json.loads(path.read_text())["invocations"][-1]
+        assert running["end"] > running["start"] and not running["finished"]  # kept current while it runs
+    record = json.loads(path.read_text())
+    assert [i["finished"] for i in record["invocations"]] == [False, True]
+    assert benchmark.WallClock.total(path) >= killed + 0.3

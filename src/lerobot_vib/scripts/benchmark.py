@@ -26,6 +26,7 @@ import os
 import platform
 import subprocess
 import sys
+import threading
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -388,9 +389,15 @@ def planned_cells(cfg: BenchmarkConfig) -> list[tuple[str, str]]:
 
 
 def run_benchmark(cfg: BenchmarkConfig) -> dict:
-    started = time.time()
     cfg.output_dir.mkdir(parents=True, exist_ok=True)
     check_resumable(cfg)
+    with WallClock(cfg.output_dir / "wall_time.json") as clock:
+        _run_cells(cfg, clock)
+    cells = {(v, c): json.loads(cell_path(cfg, v, c).read_text()) for v, c in planned_cells(cfg)}
+    return write_report(cfg, cells, WallClock.total(cfg.output_dir / "wall_time.json"))
+
+
+def _run_cells(cfg: BenchmarkConfig, clock: "WallClock") -> None:
     _write_json(cfg.output_dir / "config.json", _config_record(cfg))
     todo = [(v, c) for v, c in planned_cells(cfg) if not cell_path(cfg, v, c).exists()]
     logger.info("%d cells planned, %d to run.", len(planned_cells(cfg)), len(todo))
@@ -417,6 +424,7 @@ def run_benchmark(cfg: BenchmarkConfig) -> dict:
             policy = build_variant(variant, vib, act, rnd)
             cell = run_cell(cfg, variant, condition, policy, processors[VARIANTS[variant].chunks])
             _write_json(cell_path(cfg, variant, condition), cell)
+            clock.tick()
             logger.info(
                 "%s / %s: %d/%d in %.0f s",
                 condition,
@@ -425,9 +433,6 @@ def run_benchmark(cfg: BenchmarkConfig) -> dict:
                 len(cell["success"]),
                 cell["wall_s"],
             )
-    elapsed = _add_wall_time(cfg, time.time() - started)
-    cells = {(v, c): json.loads(cell_path(cfg, v, c).read_text()) for v, c in planned_cells(cfg)}
-    return write_report(cfg, cells, elapsed)
 
 
 def score_statistics(vib: VIBPolicy | None, rnd: RND | None) -> dict:
@@ -467,12 +472,60 @@ def check_resumable(cfg: BenchmarkConfig) -> None:
             )
 
 
-def _add_wall_time(cfg: BenchmarkConfig, seconds: float) -> float:
-    """Wall time summed over every invocation (a resumed benchmark adds up)."""
-    path = cfg.output_dir / "wall_time.json"
-    total = (json.loads(path.read_text())["seconds"] if path.exists() else 0.0) + seconds
-    _write_json(path, {"seconds": total})
-    return total
+class WallClock:
+    """Wall time over every invocation of a benchmark, killed ones included.
+
+    Each invocation appends its own record, {"start", "end", "finished"}, to `wall_time.json` when it starts,
+    and keeps its "end" current: every `beat` seconds from a background thread, after every finished cell, and
+    when it ends. An invocation killed at any point (SIGKILL included) thus counts up to its last beat, at
+    most `beat` seconds short. The total is the sum of (end - start) over the records.
+    """
+
+    def __init__(self, path: Path, beat: float = 30.0):
+        self.path, self.beat = path, beat
+        self._lock = threading.Lock()
+        self._stop = threading.Event()
+        self._thread: threading.Thread | None = None
+
+    @staticmethod
+    def load(path: Path) -> dict:
+        record = json.loads(path.read_text()) if path.exists() else {}
+        record.setdefault("invocations", [])
+        # Written before invocations were recorded: the seconds of the ones that finished.
+        record.setdefault("seconds_unrecorded", record.pop("seconds", 0.0))
+        return record
+
+    @staticmethod
+    def total(path: Path) -> float:
+        record = WallClock.load(path)
+        return record["seconds_unrecorded"] + sum(i["end"] - i["start"] for i in record["invocations"])
+
+    def __enter__(self) -> "WallClock":
+        self.record = self.load(self.path)
+        now = time.time()
+        self.record["invocations"].append({"start": now, "end": now, "finished": False})
+        self._write()
+        self._thread = threading.Thread(target=self._beat, daemon=True)
+        self._thread.start()
+        return self
+
+    def _beat(self) -> None:
+        while not self._stop.wait(self.beat):
+            self.tick()
+
+    def tick(self, finished: bool = False) -> None:
+        with self._lock:
+            self.record["invocations"][-1].update(end=time.time(), finished=finished)
+            self._write()
+
+    def _write(self) -> None:
+        _write_json(self.path, self.record)
+
+    def __exit__(self, exc_type, exc, tb) -> None:
+        self._stop.set()
+        if self._thread is not None:
+            self._thread.join()
+        self.tick(finished=exc_type is None)
 
 
 def _portable(path: Path | str | None) -> str | None:

@@ -170,7 +170,7 @@ def _markdown(cfg, results: dict, plots: list[str]) -> str:
         f"{cfg.steps} training steps, device `{cfg.device}`",
         f"- Machine: {c['machine']['processor'] or c['machine']['platform']}, {c['machine']['cpus']} CPUs; "
         + ", ".join(f"{k} {v}" for k, v in results["versions"].items()),
-        f"- Wall time: {results['wall_s'] / 60:.1f} min (all invocations)",
+        f"- Wall time: {results['wall_s'] / 60:.1f} min (every invocation; a killed one to its last beat, <= 30 s)",
         f"- Episode seeds: {cfg.eval_seed}.. per condition for every row; calibration {cfg.calibration_seed}..",
         "",
         "## Success (episodes succeeded / evaluated, 95% Wilson interval)",
