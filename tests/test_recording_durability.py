@@ -66,6 +66,12 @@ def env() -> dict:
     return {**os.environ, "MUJOCO_GL": "egl", "HF_HUB_OFFLINE": "1"}
 
 
+def record_cli(*args: str) -> subprocess.CompletedProcess:
+    """`lerobot-vib-record-sim` with the test settings and `args`, its output captured."""
+    cmd = [str(BIN / "lerobot-vib-record-sim"), *CLI_ARGS, *args]
+    return subprocess.run(cmd, capture_output=True, text=True, env=env(), timeout=600)
+
+
 def record_killed(root: Path, kill_point: str, num_episodes: int, tmp_path: Path, resume: bool = False) -> list[int]:
     """Run the recorder until the kill; return the episode indices it reported as saved."""
     script = tmp_path / "killer.py"
@@ -164,12 +170,7 @@ def test_overwrite_refuses_a_folder_it_did_not_write(tmp_path):
     root = tmp_path / "R"
     (root / "sub").mkdir(parents=True)
     (root / "notes.txt").write_text("x")
-    proc = subprocess.run(
-        [str(BIN / "lerobot-vib-record-sim"), *CLI_ARGS, "--num_episodes=1", f"--root={root}", "--overwrite=true"],
-        capture_output=True,
-        text=True,
-        env=env(),
-    )
+    proc = record_cli("--num_episodes=1", f"--root={root}", "--overwrite=true")
     assert proc.returncode != 0 and "Traceback" not in proc.stderr
     assert "not empty" in proc.stderr and "Choose another `--root`" in proc.stderr
     assert (root / "notes.txt").read_text() == "x" and (root / "sub").is_dir()
@@ -219,13 +220,7 @@ def test_resume_keeps_files_it_did_not_write_and_drops_only_the_unfinished_episo
     (root / "meta/README.md").write_text("# my notes")
     (root / "images").mkdir(exist_ok=True)
     (root / "images/labels.csv").write_text("frame,label\n0,grasp\n")
-    proc = subprocess.run(
-        [str(BIN / "lerobot-vib-record-sim"), *CLI_ARGS, "--num_episodes=1", f"--root={root}", "--resume=true"],
-        capture_output=True,
-        text=True,
-        env=env(),
-        timeout=600,
-    )
+    proc = record_cli("--num_episodes=1", f"--root={root}", "--resume=true")
     assert proc.returncode == 0, proc.stderr[-3000:]
     assert "Dropped the unfinished episode" in proc.stderr  # logging reaches the user after a kill
     assert "Kept 2 files" in proc.stderr and "meta/README.md" in proc.stderr
@@ -265,13 +260,7 @@ def test_an_edited_info_json_is_refused_by_name_not_rewritten(tmp_path):
     ],
 )
 def test_bad_recording_arguments_end_with_the_cause(flag, message, tmp_path):
-    proc = subprocess.run(
-        [str(BIN / "lerobot-vib-record-sim"), *CLI_ARGS, f"--root={tmp_path / 'ds'}", flag],
-        capture_output=True,
-        text=True,
-        env=env(),
-        timeout=300,
-    )
+    proc = record_cli(f"--root={tmp_path / 'ds'}", flag)
     last = proc.stderr.strip().splitlines()[-1]
     assert proc.returncode != 0 and message in last and "Traceback" not in proc.stderr, proc.stderr[-2000:]
     assert not (tmp_path / "ds").exists()
