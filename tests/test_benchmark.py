@@ -42,7 +42,7 @@ def tiny_config(root: Path, out: Path, **overrides) -> BenchmarkConfig:
         conditions=["normal", "occlusion"],
         n_episodes=2,
         n_episodes_other=2,
-        calibration_episodes=2,
+        validation_episodes=2,
         steps=2,
         eval_batch_size=2,
         alpha=0.5,
@@ -63,8 +63,11 @@ def test_tiny_benchmark_trains_evaluates_reports_and_resumes_without_repeating_a
     monkeypatch.setattr(benchmark, "run_cell", interrupted)
     with pytest.raises(KeyboardInterrupt):
         run_benchmark(cfg)
-    assert all(cell_path(cfg, v, c).exists() for v, c in ran)
-    assert (cfg.output_dir / "train/vib/checkpoints/000002/pretrained_model").exists()
+    assert (
+        len(list((cfg.output_dir / "validation").rglob("*.json")) + list((cfg.output_dir / "cells").rglob("*.json")))
+        == 2
+    )
+    assert (cfg.output_dir / "train/vib/seed_1000/checkpoints/000002/pretrained_model").exists()
 
     first_run, ran[:] = list(ran), []
 
@@ -78,22 +81,24 @@ def test_tiny_benchmark_trains_evaluates_reports_and_resumes_without_repeating_a
     monkeypatch.setattr(benchmark, "run_cell", counting)
     monkeypatch.setattr(benchmark.subprocess, "run", no_training)
     results = run_benchmark(cfg)
-    planned = planned_cells(cfg)
-    assert sorted(ran + first_run) == sorted(planned) and not set(ran) & set(first_run)
+    planned = [(v, c) for v, c, _, _ in planned_cells(cfg)]
+    assert sorted(ran + first_run) == sorted(planned) and len(ran) == len(planned) - 2
 
-    # the same seeds for every row of a condition, u for the scored row only
-    normal = {v: json.loads(cell_path(cfg, v, "normal").read_text()) for v in ("vib", "act")}
-    assert normal["vib"]["seeds"] == normal["act"]["seeds"] == [100_000, 100_001]
+    # the same test seeds for every row of a condition, u for the scored row only
+    normal = {v: json.loads(cell_path(cfg, v, "normal", 1000).read_text()) for v in ("vib", "act")}
+    assert normal["vib"]["seeds"] == normal["act"]["seeds"] == [600_000, 600_001]
     assert normal["act"]["u"] is None and len(normal["vib"]["u"][0]) == normal["vib"]["steps"][0]
+    assert json.loads(cell_path(cfg, "vib", "validation", 1000, "eq6:0.01").read_text())["seeds"] == [400_000, 400_001]
     for v in ("vib", "act"):
         s = results["success"][v]["normal"]
         assert s["n"] == 2 and 0 <= s["low"] <= s["pc"] <= s["high"] <= 100
-    u = results["uncertainty"]["vib"]
+    u = results["uncertainty"]["vib"]["1000"]
     assert set(u["auroc"]) == {"occlusion"} and 0 <= u["auroc"]["occlusion"]["frames"] <= 1
     assert u["thresholds"]["conformal"] is not None and len(u["thresholds"]["band"]) >= 1
     assert "occlusion_episodes" in u["stops"]["mean_2std"]
     report = (cfg.output_dir / "report.md").read_text()
     assert "lerobot-vib-benchmark" in report and "| VIB (Eq. 6) |" in report and "| ACT |" in report
+    assert "test seeds 600000-600001" in report and "1 training seed(s)" in report
     assert (cfg.output_dir / "success.png").exists() and (cfg.output_dir / "traces.png").exists()
     assert json.loads((cfg.output_dir / "results.json").read_text())["success"]["act"]["occlusion"]["n"] == 2
 
@@ -102,6 +107,89 @@ def test_tiny_benchmark_trains_evaluates_reports_and_resumes_without_repeating_a
         run_benchmark(tiny_config(arm_data, cfg.output_dir, n_episodes=3))
     with pytest.raises(VIBConfigError, match="other steps"):
         run_benchmark(tiny_config(arm_data, cfg.output_dir, steps=3))
+
+
+def test_two_training_seeds_choose_each_run_time_on_validation_and_report_the_spread(arm_data, tmp_path):
+    """The comparison rows at two training seeds: every network trained per seed, each row's run time chosen
+    on validation episodes only, test cells on the test seeds, success pooled and per seed."""
+    cfg = tiny_config(
+        arm_data,
+        tmp_path / "bench",
+        variants=["act_like_vib", "vib_chosen"],
+        conditions=["normal", "gaussian"],
+        train_seeds=[1000, 2000],
+        runtimes=["queue", "act:0.3"],
+    )
+    results = run_benchmark(cfg)
+    out = cfg.output_dir
+    for net in ("act_like_vib", "vib"):
+        for seed in (1000, 2000):
+            assert (out / f"train/{net}/seed_{seed}/checkpoints/000002/pretrained_model").exists()
+            command = (out / f"train/{net}/seed_{seed}_command.txt").read_text()
+            assert f"--seed={seed}" in command
+    assert "--policy.type=act_like_vib" in (out / "train/act_like_vib/seed_1000_command.txt").read_text()
+    saved = json.loads(
+        (out / "train/act_like_vib/seed_1000/checkpoints/000002/pretrained_model/config.json").read_text()
+    )
+    assert (saved["type"], saved["backbone_norm"], saved["backbone_layer"], saved["ema_decay"]) == (
+        "act_like_vib", "group_norm", "layer2", 0.999,
+    )  # fmt: skip
+
+    choices = json.loads((out / "choices.json").read_text())
+    for v in ("act_like_vib", "vib_chosen"):
+        for seed in (1000, 2000):
+            choice = choices[v][str(seed)]
+            validation = {
+                rt: json.loads(cell_path(cfg, v, "validation", seed, rt).read_text()) for rt in ("queue", "act:0.3")
+            }
+            wins = {rt: sum(c["success"]) for rt, c in validation.items()}
+            assert choice["chosen_on"] == {rt: [wins[rt], 2] for rt in wins}
+            assert choice["runtime"] == ("act:0.3" if wins["act:0.3"] > wins["queue"] else "queue")
+            assert all(c["seeds"] == [400_000, 400_001] for c in validation.values())
+            for condition in ("normal", "gaussian"):
+                test = json.loads(cell_path(cfg, v, condition, seed).read_text())
+                assert test["runtime"] == choice["runtime"] and test["train_seed"] == seed
+                assert test["seeds"] == [600_000, 600_001]
+
+    normal = results["success"]["vib_chosen"]["normal"]
+    per_seed = [normal["per_seed"][s] for s in ("1000", "2000")]
+    assert normal["n"] == 4 and normal["k"] == sum(p["k"] for p in per_seed)
+    assert normal["n_seeds"] == 2 and normal["min_pc"] <= normal["mean_pc"] <= normal["max_pc"]
+    assert normal["mean_pc"] == pytest.approx(sum(p["pc"] for p in per_seed) / 2)
+    assert set(results["uncertainty"]["vib_chosen"]) == {"1000", "2000"}
+    report = (out / "report.md").read_text()
+    assert "| ACT + VIB's trunk, EMA, floor |" in report and "Run times chosen on validation" in report
+    assert "seed 2000" in report and "2 training seed(s)" in report and "VIOLATION" not in report
+
+    # the report finds a choice that saw test episodes (here: an edited choices.json)
+    choices["vib_chosen"]["2000"]["validation_seeds"] = [600_001]
+    (out / "choices.json").write_text(json.dumps(choices))
+    run_benchmark(cfg, report_only=True)
+    assert (
+        "VIOLATION: VIB (arm preset)'s run time at training seed 2000 was chosen on 1 test episodes"
+        in (out / "report.md").read_text()
+    )
+
+
+def test_a_run_that_would_choose_on_test_seeds_is_refused_before_any_work(arm_data, tmp_path):
+    with pytest.raises(VIBConfigError, match="overlap the test seeds"):
+        tiny_config(arm_data, tmp_path / "a", validation_seed=600_001)
+    with pytest.raises(VIBConfigError, match="overlap the test seeds"):
+        tiny_config(arm_data, tmp_path / "b", test_seed=399_999, validation_seed=400_000)
+    assert not (tmp_path / "a").exists() and not (tmp_path / "b").exists()
+    # a given checkpoint whose stop threshold was set on rollouts of the test seeds
+    checkpoint = tmp_path / "ckpt"
+    checkpoint.mkdir()
+    (checkpoint / "config.json").write_text(json.dumps({"type": "vib", "calibration": {"rollout_seeds": [600_001]}}))
+    cfg = tiny_config(arm_data, tmp_path / "c", variants=["vib"], vib_checkpoint=checkpoint)
+    with pytest.raises(VIBConfigError, match="test seeds"):
+        run_benchmark(cfg)
+    with pytest.raises(VIBConfigError, match="single --train_seeds"):
+        tiny_config(arm_data, tmp_path / "d", vib_checkpoint=checkpoint, train_seeds=[1, 2])
+    with pytest.raises(VIBConfigError, match="runtimes"):
+        tiny_config(arm_data, tmp_path / "e", runtimes=["act:-1"])
+    with pytest.raises(VIBConfigError, match=r"Eq\. 6 needs a u"):
+        tiny_config(arm_data, tmp_path / "f", variants=["comparison"], runtimes=["eq6:0.3"])
 
 
 def test_the_command_line_refuses_scene_conditions_off_the_arm_and_unknown_rows(tmp_path):
@@ -289,3 +377,36 @@ def test_wall_time_counts_every_invocation_a_killed_one_included(tmp_path):
     record = json.loads(path.read_text())
     assert [i["finished"] for i in record["invocations"]] == [False, True]
     assert benchmark.WallClock.total(path) >= killed + 0.3
+
+
+def test_comparison_rows_train_their_own_networks_and_run_the_run_time_they_are_given(tmp_path):
+    """vib_beta0 is the preset with beta = 0; act_like_vib copies the preset's trunk, average and floor; a row
+    whose run time is chosen runs exactly the one it is given, and refuses to run without one."""
+    from helpers import make_config
+    from lerobot_vib.modeling_vib import VIBPolicy
+    from lerobot_vib.variants import build_variant
+
+    cfg = BenchmarkConfig(
+        dataset=DatasetConfig(repo_id="x"), env=ArmGraspEnvConfig(), output_dir=tmp_path, variants=["comparison"]
+    )
+    assert cfg.variants == ["act_chosen", "act_like_vib", "vib_beta0", "vib_chosen"]
+    assert cfg.networks() == ["vib", "vib_beta0", "act", "act_like_vib"]
+    preset = json.loads(cfg.preset.read_text())["policy"]
+    beta0 = benchmark.train_command("vib_beta0", cfg, tmp_path / "b", 2000)
+    assert "--policy.beta=0" in beta0 and "--seed=2000" in beta0 and f"--config_path={cfg.preset}" in beta0
+    like = benchmark.train_command("act_like_vib", cfg, tmp_path / "a", 1000)
+    for field in ("backbone_norm", "backbone_layer", "ema_decay", "normalization_floor"):
+        assert f"--policy.{field}={preset[field]}" in like
+    assert "--policy.type=act_like_vib" in like and "--policy.type=act" in benchmark.train_command(
+        "act", cfg, tmp_path, 1
+    )
+
+    vib = VIBPolicy(make_config(chunk_size=20, n_action_steps=1, temporal_ensemble="act"))
+    with pytest.raises(ValueError, match="chosen on validation"):
+        build_variant("vib_chosen", {"vib": vib})
+    ensembling = build_variant("vib_chosen", {"vib": vib}, runtime="act:0.3")
+    assert (ensembling.config.temporal_ensemble, ensembling.config.temporal_ensemble_coeff) == ("act", 0.3)
+    queue = build_variant("vib_chosen", {"vib": vib}, runtime="queue")
+    assert (queue.config.temporal_ensemble, queue.config.n_action_steps) == ("none", 10)
+    with pytest.raises(ValueError, match="needs the VIB_BETA0"):
+        build_variant("vib_beta0", {"vib": vib}, runtime="queue")

@@ -1,6 +1,7 @@
 """lerobot-vib: uncertainty-aware imitation learning for LeRobot through a Variational Information
-Bottleneck. Importing this package registers `--policy.type=vib` with LeRobot."""
+Bottleneck. Importing this package registers `--policy.type=vib` (and the baseline `act_like_vib`) with LeRobot."""
 
+from . import baselines as _baselines  # noqa: F401  (registers --policy.type=act_like_vib)
 from .configuration_vib import VIBConfig
 from .sim import env_config as _env_config  # noqa: F401  (registers --env.type=aloha_fast)
 

@@ -21,6 +21,16 @@ what the score does at run time from what the bottleneck does to the learned fea
 The rows with a score are `ScoredChunkPolicy` (a chunk source, a score, and the shared `ChunkRuntime`) or
 `VIBPolicy` itself; the safety stop is off in all of them (the benchmark judges thresholds offline on the
 recorded u, so one rollout serves every threshold).
+
+The comparison rows (`COMPARISON`) separate what the bottleneck buys from what VIB's other choices buy. Each
+comes from its own network, trained on the same data, budget and recipe, and its run time (action queue, or
+ACT's ensembling at some m) is chosen per trained network on validation episodes (`lerobot-vib-benchmark`):
+
+    row            network        what it adds to the row above
+    act_chosen     act            LeRobot's ACT as it is (frozen batch norm, ResNet to layer4, last weights)
+    act_like_vib   act_like_vib   VIB's trunk (group norm, cut after layer2), weight average, normalization floor
+    vib_beta0      vib_beta0      VIB's architecture (state tokens, posterior heads), no pressure on the rate
+    vib_chosen     vib            the bottleneck: beta of the preset
 """
 
 from __future__ import annotations
@@ -42,7 +52,16 @@ from .rnd import RND
 from .runtime import ChunkRuntime
 from .safety import SafetyAction, SafetyMonitor
 
-ENSEMBLE_COEFF = 0.01  # ACT's default m, for every ensembling row
+ENSEMBLE_COEFF = 0.01  # ACT's default m, for every ensembling row of Table I
+
+# The trained networks a row's chunks or u come from, with the policy class family that loads them.
+NETWORKS: dict[str, str] = {
+    "vib": "vib",  # the preset as it is
+    "vib_beta0": "vib",  # the preset with beta = 0
+    "act": "act",  # LeRobot's ACT with the preset's sizes and recipe
+    "act_like_vib": "act",  # and VIB's trunk, weight average and normalization floor (baselines/)
+}
+CHOSEN = "chosen"  # a row whose run time is chosen on validation episodes among the benchmark's `runtimes`
 
 
 def queue_steps(chunk_size: int, n_action_steps: int, ensembles: bool) -> int:
@@ -54,9 +73,15 @@ def queue_steps(chunk_size: int, n_action_steps: int, ensembles: bool) -> int:
 @dataclass(frozen=True)
 class Variant:
     label: str  # as in the paper's Table I
-    chunks: str  # "vib" or "act": the network that predicts the chunks
-    ensemble: str  # runtime.py's mode
-    score: str | None  # "vib", "rnd" or None: the u recorded (and used by Eq. 6)
+    chunks: str  # the network (NETWORKS) that predicts the chunks
+    ensemble: str  # runtime.py's mode, or CHOSEN
+    score: str | None  # a VIB network of NETWORKS, "rnd" or None: the u recorded (and used by Eq. 6)
+
+    def runtime(self) -> str:
+        """The fixed run time of a Table I row as a `runtimes` entry (`parse_runtime`)."""
+        if self.ensemble == CHOSEN:
+            raise ValueError(f"{self.label}'s run time is chosen on validation episodes, not fixed.")
+        return {"none": "queue", "act": f"act:{ENSEMBLE_COEFF}", "uncertainty": f"eq6:{ENSEMBLE_COEFF}"}[self.ensemble]
 
 
 VARIANTS: dict[str, Variant] = {
@@ -68,7 +93,30 @@ VARIANTS: dict[str, Variant] = {
     "act_rnd": Variant("ACT w/ RND", "act", "uncertainty", "rnd"),
     "vib_wo_u": Variant("VIB wo/ Uncertainty", "vib", "act", "vib"),
     "vib_rnd": Variant("VIB r/RND", "vib", "uncertainty", "rnd"),
+    "act_chosen": Variant("ACT (LeRobot's)", "act", CHOSEN, None),
+    "act_like_vib": Variant("ACT + VIB's trunk, EMA, floor", "act_like_vib", CHOSEN, None),
+    "vib_beta0": Variant("VIB, beta = 0", "vib_beta0", CHOSEN, "vib_beta0"),
+    "vib_chosen": Variant("VIB (arm preset)", "vib", CHOSEN, "vib"),
 }
+TABLE_I = ("act", "act_te", "vib", "vib_queue", "act_u", "act_rnd", "vib_wo_u", "vib_rnd")
+COMPARISON = ("act_chosen", "act_like_vib", "vib_beta0", "vib_chosen")
+_RUNTIME_MODES = {"queue": "none", "act": "act", "eq6": "uncertainty"}
+
+
+def parse_runtime(spec: str) -> tuple[str, float]:
+    """ "queue", "act:<m>" (ACT's ensembling) or "eq6:<m>" -> (runtime.py's mode, m)."""
+    mode, _, coeff = spec.partition(":")
+    if mode not in _RUNTIME_MODES or (mode == "queue") != (coeff == ""):
+        raise ValueError(f"A run time is 'queue', 'act:<m>' or 'eq6:<m>' (m >= 0), got {spec!r}.")
+    if mode == "queue":
+        return "none", ENSEMBLE_COEFF
+    try:
+        m = float(coeff)
+    except ValueError:
+        m = math.nan
+    if not (math.isfinite(m) and m >= 0):
+        raise ValueError(f"The m of run time {spec!r} must be a number >= 0.")
+    return _RUNTIME_MODES[mode], m
 
 
 def _known_mean(mean: float, problem: str) -> float:
@@ -170,14 +218,16 @@ class ScoredChunkPolicy(PreTrainedPolicy):
         return action
 
 
-def vib_with(vib: VIBPolicy, ensemble: str) -> VIBPolicy:
-    """The VIB checkpoint run with another ensembling mode (its own `select_action`), the stop off."""
+def vib_with(vib: VIBPolicy, ensemble: str, coeff: float = ENSEMBLE_COEFF) -> VIBPolicy:
+    """The VIB checkpoint run with another ensembling mode and m (its own `select_action`), the stop off."""
     config = copy.deepcopy(vib.config)
     if ensemble == "none":
         ensembles = config.temporal_ensemble != "none"
         config.n_action_steps = queue_steps(config.chunk_size, config.n_action_steps, ensembles)
+    else:
+        config.n_action_steps = 1
     config.temporal_ensemble = ensemble
-    config.temporal_ensemble_coeff = ENSEMBLE_COEFF
+    config.temporal_ensemble_coeff = coeff
     config.safety.enabled = False
     config.uncertainty_every_step = True  # the u trace needs every step, also under the queue
     policy = VIBPolicy(config)
@@ -185,31 +235,45 @@ def vib_with(vib: VIBPolicy, ensemble: str) -> VIBPolicy:
     return policy.eval()
 
 
-def act_with(act: ACTPolicy, ensemble: str) -> ACTPolicy:
-    """LeRobot's ACT with its queue ("none") or its temporal ensembling ("act")."""
+def act_with(act: ACTPolicy, ensemble: str, coeff: float = ENSEMBLE_COEFF) -> ACTPolicy:
+    """LeRobot's ACT (or a subclass, such as ACT like VIB) with its queue ("none") or its temporal ensembling
+    ("act") at m = `coeff`."""
+    if ensemble not in ("none", "act"):
+        raise ValueError(f"ACT runs its queue or its own ensembling, not {ensemble!r}.")
     config = copy.deepcopy(act.config)
     if ensemble == "act":
-        config.temporal_ensemble_coeff, config.n_action_steps = ENSEMBLE_COEFF, 1
+        config.temporal_ensemble_coeff, config.n_action_steps = coeff, 1
     else:
         config.temporal_ensemble_coeff = None
-    policy = ACTPolicy(config)
+    policy = type(act)(config)
     policy.load_state_dict(act.state_dict())
     return policy.eval()
 
 
-def build_variant(name: str, vib: VIBPolicy | None, act: ACTPolicy | None, rnd: RND | None) -> PreTrainedPolicy:
-    """The policy of one Table I row from the trained networks it needs (module docstring)."""
+def build_variant(
+    name: str,
+    networks: dict[str, PreTrainedPolicy | None],
+    rnd: RND | None = None,
+    runtime: str | None = None,
+) -> PreTrainedPolicy:
+    """The policy of one row from the trained networks it needs (module docstring), `networks` keyed as
+    NETWORKS. `runtime` (`parse_runtime`) is the row's run time: required for a row whose run time is chosen,
+    the row's own when None."""
     if name not in VARIANTS:
         raise ValueError(f"Unknown variant {name!r}; choose from {sorted(VARIANTS)}.")
     v = VARIANTS[name]
-    needs = {"vib": vib, "act": act, "rnd": rnd}
+    if runtime is None:
+        runtime = v.runtime()
+    ensemble, coeff = parse_runtime(runtime)
+    needs = {**networks, "rnd": rnd}
     for model in {v.chunks, *([v.score] if v.score else [])}:
-        if needs[model] is None:
+        if needs.get(model) is None:
             raise ValueError(f"Variant {name!r} ({v.label}) needs the {model.upper()} network.")
+    chunk_net = networks[v.chunks]
     if v.score is None:
-        return act_with(act, v.ensemble)
-    if v.chunks == "vib" and v.score == "vib":
-        return vib_with(vib, v.ensemble)
-    chunk_policy = vib_with(vib, "none") if v.chunks == "vib" else act_with(act, "none")
-    score = vib_score(vib) if v.score == "vib" else rnd_score(rnd)
-    return ScoredChunkPolicy(chunk_policy, score, v.ensemble)
+        return act_with(chunk_net, ensemble, coeff)
+    if v.score == v.chunks:
+        return vib_with(chunk_net, ensemble, coeff)
+    chunk_policy = vib_with(chunk_net, "none") if NETWORKS[v.chunks] == "vib" else act_with(chunk_net, "none")
+    score = rnd_score(rnd) if v.score == "rnd" else vib_score(networks[v.score])
+    return ScoredChunkPolicy(chunk_policy, score, ensemble, coeff)

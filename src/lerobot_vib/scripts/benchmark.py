@@ -6,14 +6,22 @@ one resumable command, for any recorded dataset and env.
 
 Stages, each saved as it finishes so that a stopped benchmark resumes where it stopped:
 
-1. train: VIB from the profile's preset and ACT with the same architecture, recipe and budget, each by
-   `lerobot-train` (an interrupted training resumes with LeRobot's `--resume=true`); or given checkpoints
-   (`--vib_checkpoint`, `--act_checkpoint`).
+For each training seed (`--train_seeds`):
+
+1. train: every network the rows need (variants.NETWORKS: VIB from the profile's preset, VIB with beta = 0,
+   ACT with the same sizes, recipe and budget, ACT with VIB's trunk treatment), each by `lerobot-train` (an
+   interrupted training resumes with LeRobot's `--resume=true`); or given checkpoints (`--vib_checkpoint`,
+   `--act_checkpoint`, one training seed only).
 2. RND (rnd.py) on the training dataset, normalized by the VIB checkpoint's preprocessor, if a row needs it.
-3. cells: every variant (variants.py) under every condition, on the same episode seeds per condition, through
-   LeRobot's eval loop (`lerobot_eval.eval_policy`), recording u at every step; plus clean calibration
-   rollouts on other seeds for each row with a score (the thresholds are judged on rollouts).
-4. report (benchmark_report.py): `report.md`, `results.json` and the plots.
+3. validation: clean rollouts on the validation seeds. Every choice is made here and only here: the run time
+   of each row whose run time is chosen (among `--runtimes`, per trained network), and the thresholds of the
+   scored rows (judged on these rollouts' u). The choices are written to `choices.json` with their seeds.
+4. test: every row under every condition on the test seeds, the same seeds per condition for every row,
+   through LeRobot's eval loop (`lerobot_eval.eval_policy`), recording u at every step. Nothing is chosen here.
+
+Then the report (benchmark_report.py): `report.md`, `results.json` and the plots, with success pooled over the
+training seeds (Wilson interval) and its mean and range over them. Validation and test seeds must not overlap:
+a configuration whose choices would see test episodes is refused before any work.
 
 Conditions: normal; gaussian (noise std drawn from {0, 0.05, 0.1}); color (jitter 0.2 with probability 0.5);
 on the simulated arm also camera_shake, unseen_block and occlusion (sim/perturbations.py).
@@ -40,7 +48,6 @@ from lerobot.configs.default import DatasetConfig
 from lerobot.configs.policies import PreTrainedConfig
 from lerobot.envs.factory import make_env, make_env_pre_post_processors
 from lerobot.envs.utils import close_envs
-from lerobot.policies.act.modeling_act import ACTPolicy
 from lerobot.policies.factory import make_pre_post_processors
 from lerobot.scripts import lerobot_eval
 from lerobot.utils.import_utils import register_third_party_plugins
@@ -53,7 +60,7 @@ from ..modeling_vib import VIBPolicy
 from ..rnd import RND, RNDConfig, train_rnd
 from ..sim import env_config  # noqa: F401  (registers --env.type=aloha_fast and vib_arm)
 from ..sim.perturbations import CONDITIONS, SCENE_CONDITIONS
-from ..variants import VARIANTS, build_variant, queue_steps
+from ..variants import CHOSEN, COMPARISON, NETWORKS, VARIANTS, build_variant, parse_runtime, queue_steps
 from .benchmark_report import write_report
 from .eval_uncertainty import UncertaintyCapture
 
@@ -75,8 +82,11 @@ ACT_FROM_VIB = {
     "optimizer_weight_decay": "optimizer_weight_decay",
 }
 
-CALIBRATION = "calibration"  # clean rollouts on their own seeds, for the thresholds
-MAIN_VARIANTS = ("vib", "act")  # the rows that get `n_episodes`; the others get `n_episodes_other`
+VALIDATION = "validation"  # clean rollouts on the validation seeds: every choice, the thresholds included
+# Table I's rows that get `n_episodes` on every condition; the others get `n_episodes_other`. The comparison
+# rows get `n_episodes` on the normal condition and `n_episodes_other` under each perturbation.
+MAIN_VARIANTS = ("vib", "act")
+DEFAULT_RUNTIMES = ("queue", "act:0.01", "act:0.3")
 
 
 @dataclass(frozen=True)
@@ -88,7 +98,7 @@ class Profile:
     steps: int | None
     n_episodes: int
     n_episodes_other: int
-    calibration_episodes: int
+    validation_episodes: int
     rnd_steps: int
     device: str
 
@@ -116,20 +126,32 @@ class BenchmarkConfig:
     env: The evaluation env (`--env.type=vib_arm --env.dataset_root=...` reuses a recording's settings).
     output_dir: Where checkpoints, cells, the report and the plots go; rerun the command to resume.
     profile: `cpu-small`, `gpu` or `paper` (PROFILES); the fields below left unset take the profile's value.
-    variants: Rows of Table I (variants.VARIANTS); default all.
+    variants: Rows (variants.VARIANTS); default the paper's Table I. `[comparison]` stands for the four rows
+        that separate the bottleneck from VIB's other choices (variants.COMPARISON).
     conditions: Default: normal, gaussian, color, and on the simulated arm camera_shake, unseen_block, occlusion.
-    n_episodes: Episodes per cell for VIB (Eq. 6) and ACT.
-    n_episodes_other: Episodes per cell for the other rows.
-    calibration_episodes: Clean rollouts per scored row on their own seeds, for the thresholds.
+    n_episodes: Test episodes per cell for VIB (Eq. 6), ACT and the comparison rows, and for every row on the
+        normal condition.
+    n_episodes_other: Test episodes per cell for the other rows and conditions.
+    validation_episodes: Clean validation rollouts per row, run time and training seed: the run time is chosen
+        on them, and the thresholds of a scored row are set on them.
+    runtimes: The run times a comparison row chooses from on validation (variants.parse_runtime): "queue"
+        (the checkpoint's action queue; half a chunk when the preset ensembles), "act:<m>" (ACT's temporal
+        ensembling), "eq6:<m>" (Eq. 6, scored rows only). The most validation successes wins; a tie goes to
+        the one listed first.
     preset: The VIB train config (`lerobot-train --config_path`); ACT copies its architecture and recipe.
-    steps: Training steps of VIB and ACT.
+    steps: Training steps of every network.
     save_freq: Steps between saved training checkpoints: an interrupted training resumes from the last one.
     rnd_steps: Training steps of the RND predictor.
     vib_checkpoint, act_checkpoint: Trained `pretrained_model` folders to evaluate instead of training.
     device: Where training and evaluation run.
     eval_batch_size: Envs per rollout batch.
     alpha: Level of the conformal thresholds (false-stop rate bound on in-distribution episodes).
-    seed: Training seed. eval_seed, calibration_seed: the first episode seed of the cells and of calibration.
+    train_seeds: Training seeds: every network is trained once per seed, and every cell evaluated per seed.
+    validation_seed: The first validation episode seed (every choice). test_seed: the first test episode seed
+        (every reported number). The two ranges must not overlap.
+    train_only: Train every network for every seed, then stop (train where a GPU is, evaluate elsewhere).
+    report_only: Write the report from the cells on disk, running nothing (a partial run's report says which
+        cells it lacks).
     """
 
     dataset: DatasetConfig
@@ -140,7 +162,8 @@ class BenchmarkConfig:
     conditions: list[str] | None = None
     n_episodes: int | None = None
     n_episodes_other: int | None = None
-    calibration_episodes: int | None = None
+    validation_episodes: int | None = None
+    runtimes: list[str] = field(default_factory=lambda: list(DEFAULT_RUNTIMES))
     preset: Path | None = None
     steps: int | None = None
     save_freq: int = 1000
@@ -150,15 +173,17 @@ class BenchmarkConfig:
     device: str | None = None
     eval_batch_size: int = 10
     alpha: float = 0.1
-    seed: int = 1000
-    eval_seed: int = 100_000
-    calibration_seed: int = 200_000
+    train_seeds: list[int] = field(default_factory=lambda: [1000])
+    validation_seed: int = 400_000
+    test_seed: int = 600_000
+    train_only: bool = False
+    report_only: bool = False
 
     def __post_init__(self):
         if self.profile not in PROFILES:
             raise VIBConfigError(f"Unknown --profile={self.profile!r}; choose from {sorted(PROFILES)}.")
         p = PROFILES[self.profile]
-        for name in ("n_episodes", "n_episodes_other", "calibration_episodes", "steps", "rnd_steps", "device"):
+        for name in ("n_episodes", "n_episodes_other", "validation_episodes", "steps", "rnd_steps", "device"):
             if getattr(self, name) is None:
                 setattr(self, name, getattr(p, name))
         if self.preset is None:
@@ -169,8 +194,10 @@ class BenchmarkConfig:
                     f"--profile={self.profile} has no preset for --env.type={env_type}: give --preset=<train config>."
                 )
             self.preset = CONFIGS / name
+        if self.variants == ["comparison"]:
+            self.variants = list(COMPARISON)
         if unknown := sorted(set(self.variants) - set(VARIANTS)):
-            raise VIBConfigError(f"Unknown variants {unknown}; choose from {sorted(VARIANTS)}.")
+            raise VIBConfigError(f"Unknown variants {unknown}; choose from {sorted(VARIANTS)} or [comparison].")
         scene = getattr(self.env, "type", None) == "vib_arm"
         if self.conditions is None:
             self.conditions = [c for c in CONDITIONS if scene or c not in SCENE_CONDITIONS]
@@ -182,9 +209,10 @@ class BenchmarkConfig:
             raise VIBConfigError(
                 f"--env.type={self.env.type} takes no perturbations; use aloha_fast or vib_arm (lerobot_vib.sim)."
             )
-        for name in ("n_episodes", "n_episodes_other", "calibration_episodes", "eval_batch_size"):
+        for name in ("n_episodes", "n_episodes_other", "validation_episodes", "eval_batch_size"):
             if getattr(self, name) < 1:
                 raise VIBConfigError(f"--{name} must be >= 1, got {getattr(self, name)}.")
+        self._check_protocol()
         if not 0 < self.alpha < 1:
             raise VIBConfigError(f"--alpha must be in (0, 1), got {self.alpha}.")
         if not self.preset.exists():
@@ -192,13 +220,62 @@ class BenchmarkConfig:
         if self.steps is None:
             self.steps = json.loads(self.preset.read_text())["steps"]
 
+    def _check_protocol(self) -> None:
+        """Choices on validation seeds, numbers on test seeds, never the same episodes; run times that parse."""
+        if not self.train_seeds or len(set(self.train_seeds)) != len(self.train_seeds):
+            raise VIBConfigError(f"--train_seeds must be distinct and at least one, got {self.train_seeds}.")
+        validation, test = self.validation_seeds(), self.test_seeds()
+        if shared := sorted(set(validation) & set(test)):
+            raise VIBConfigError(
+                f"The validation seeds {validation[0]}..{validation[-1]} overlap the test seeds "
+                f"{test[0]}..{test[-1]} ({len(shared)} shared, from {shared[0]}): the run times and thresholds "
+                "would be chosen on episodes the report measures. Give --validation_seed and --test_seed ranges "
+                "that do not overlap."
+            )
+        if not self.runtimes:
+            raise VIBConfigError("--runtimes must name at least one run time (queue, act:<m>, eq6:<m>).")
+        for spec in self.runtimes:
+            try:
+                parse_runtime(spec)
+            except ValueError as e:
+                raise VIBConfigError(f"--runtimes: {e}") from None
+        chosen_unscored = [v for v in self.variants if VARIANTS[v].ensemble == CHOSEN and VARIANTS[v].score is None]
+        if chosen_unscored and any(spec.startswith("eq6") for spec in self.runtimes):
+            raise VIBConfigError(f"Eq. 6 needs a u: rows {chosen_unscored} have none; drop eq6 from --runtimes.")
+        given = [n for n in ("vib_checkpoint", "act_checkpoint") if getattr(self, n) is not None]
+        if given and len(self.train_seeds) > 1:
+            raise VIBConfigError(f"--{given[0]} is one trained network: it takes a single --train_seeds value.")
+
+    def validation_seeds(self) -> list[int]:
+        return list(range(self.validation_seed, self.validation_seed + self.validation_episodes))
+
+    def test_seeds(self) -> list[int]:
+        return list(range(self.test_seed, self.test_seed + max(self.n_episodes, self.n_episodes_other)))
+
+    def networks(self) -> list[str]:
+        """The trained networks the rows need, in NETWORKS' order."""
+        used = {m for v in self.variants for m in (VARIANTS[v].chunks, VARIANTS[v].score)}
+        return [n for n in NETWORKS if n in used]
+
     def needs(self, network: str) -> bool:
-        return any(network in (VARIANTS[v].chunks, VARIANTS[v].score) for v in self.variants)
+        if network == "rnd":
+            return any(VARIANTS[v].score == "rnd" for v in self.variants)
+        return network in self.networks()
 
     def episodes(self, variant: str, condition: str) -> int:
-        if condition == CALIBRATION:
-            return self.calibration_episodes
+        if condition == VALIDATION:
+            return self.validation_episodes
+        if variant in COMPARISON:  # the claim's rows: the most episodes where the claim is made
+            return self.n_episodes if condition == "normal" else self.n_episodes_other
         return self.n_episodes if variant in MAIN_VARIANTS else self.n_episodes_other
+
+    def validated(self, variant: str) -> list[str]:
+        """The run times a row is rolled out with on validation: its candidates, or its own run time when it
+        is scored (its thresholds are set there), or none."""
+        v = VARIANTS[variant]
+        if v.ensemble == CHOSEN:
+            return list(self.runtimes)
+        return [v.runtime()] if v.score is not None else []
 
 
 # ----------------------------------------------------------------------------------------------------- training
@@ -208,12 +285,17 @@ def _bin(name: str) -> str:
     return str(Path(sys.executable).parent / name)
 
 
-def train_command(network: str, cfg: BenchmarkConfig, out: Path) -> list[str]:
+# What the ACT like VIB baseline copies from the VIB preset (baselines/configuration_act_like_vib.py).
+LIKE_VIB_FIELDS = ("backbone_norm", "backbone_layer", "ema_decay", "normalization_floor")
+
+
+def train_command(network: str, cfg: BenchmarkConfig, out: Path, seed: int) -> list[str]:
+    """The `lerobot-train` command of one network (variants.NETWORKS) at one training seed."""
     common = [
         f"--dataset.repo_id={cfg.dataset.repo_id}",
         *([f"--dataset.root={cfg.dataset.root}"] if cfg.dataset.root else []),
         f"--output_dir={out}",
-        f"--seed={cfg.seed}",
+        f"--seed={seed}",
         f"--steps={cfg.steps}",
         f"--save_freq={min(cfg.save_freq, cfg.steps)}",
         "--env_eval_freq=0",
@@ -221,14 +303,25 @@ def train_command(network: str, cfg: BenchmarkConfig, out: Path) -> list[str]:
     ]
     if network == "vib":
         return [_bin("lerobot-train"), f"--config_path={cfg.preset}", *common]
+    if network == "vib_beta0":
+        return [_bin("lerobot-train"), f"--config_path={cfg.preset}", "--policy.beta=0", *common]
+    if network not in ("act", "act_like_vib"):
+        raise ValueError(f"Unknown network {network!r}; choose from {list(NETWORKS)}.")
     preset = json.loads(cfg.preset.read_text())
     run = [f"--{k}={preset[k]}" for k in ("batch_size", "num_workers", "log_freq") if k in preset]
+    like_vib = []
+    if network == "act_like_vib":
+        policy = preset["policy"]
+        like_vib = [
+            f"--policy.{k}={'null' if policy.get(k) is None else policy[k]}" for k in LIKE_VIB_FIELDS if k in policy
+        ]
     return [
         _bin("lerobot-train"),
-        "--policy.type=act",
+        f"--policy.type={network}",
         "--policy.push_to_hub=false",
         "--policy.pretrained_backbone_weights=null",
         *act_recipe_flags(preset),
+        *like_vib,
         *run,
         "--wandb.enable=false",
         *common,
@@ -266,38 +359,62 @@ def act_recipe_flags(preset: dict) -> list[str]:
     return flags
 
 
-def train(network: str, cfg: BenchmarkConfig) -> Path:
+def given_checkpoint(network: str, cfg: BenchmarkConfig) -> Path | None:
+    return {"vib": cfg.vib_checkpoint, "act": cfg.act_checkpoint}.get(network)
+
+
+def train_dir(cfg: BenchmarkConfig, network: str, seed: int) -> Path:
+    return cfg.output_dir / "train" / network / f"seed_{seed}"
+
+
+def train(network: str, cfg: BenchmarkConfig, seed: int) -> Path:
     """The trained checkpoint's `pretrained_model`, training (or resuming) with `lerobot-train` if needed."""
-    given = cfg.vib_checkpoint if network == "vib" else cfg.act_checkpoint
+    given = given_checkpoint(network, cfg)
     if given is not None:
+        check_given_checkpoint(Path(given), cfg)
         return Path(given)
-    out = cfg.output_dir / "train" / network
+    out = train_dir(cfg, network, seed)
     final = out / "checkpoints" / f"{cfg.steps:06d}" / "pretrained_model"
     if final.exists():
         return final
     last = out / "checkpoints" / "last" / "pretrained_model"
-    cmd = train_command(network, cfg, out)
+    cmd = train_command(network, cfg, out, seed)
     if last.exists():  # an interrupted training
         cmd = [cmd[0], f"--config_path={last / 'train_config.json'}", "--resume=true"]
     elif out.exists():  # lerobot-train refuses an existing output dir without a checkpoint to resume
         raise VIBConfigError(f"{out} exists without a checkpoint to resume from: move it away and rerun.")
-    log = cfg.output_dir / "train" / f"{network}.log"
+    log = out.with_name(f"{out.name}.log")
     log.parent.mkdir(parents=True, exist_ok=True)
-    with (cfg.output_dir / "train" / f"{network}_command.txt").open("a") as f:
+    with out.with_name(f"{out.name}_command.txt").open("a") as f:
         f.write(" ".join(cmd) + "\n")
-    logger.info("Training %s (log: %s): %s", network.upper(), log, " ".join(cmd))
+    logger.info("Training %s, seed %d (log: %s): %s", network, seed, log, " ".join(cmd))
     with log.open("a") as f:
         result = subprocess.run(cmd, stdout=f, stderr=subprocess.STDOUT, env={**os.environ})
     if result.returncode != 0 or not final.exists():
-        raise RuntimeError(f"Training {network.upper()} failed (exit {result.returncode}); see {log}.")
+        raise RuntimeError(f"Training {network}, seed {seed} failed (exit {result.returncode}); see {log}.")
     return final
 
 
-def fit_rnd(cfg: BenchmarkConfig, vib_path: Path, vib: VIBPolicy) -> RND:
-    """RND on the training frames as the VIB policy sees them (its preprocessor), saved under rnd/."""
+def check_given_checkpoint(path: Path, cfg: BenchmarkConfig) -> None:
+    """Refuse a given checkpoint whose recorded choices (its threshold's rollouts) saw this run's test seeds."""
+    config_file = path / "config.json"
+    if not config_file.exists():
+        raise VIBConfigError(f"{path} is not a trained policy folder: it has no config.json.")
+    calibration = json.loads(config_file.read_text()).get("calibration") or {}
+    seen = set(calibration.get("rollout_seeds") or [])
+    if shared := sorted(seen & set(cfg.test_seeds())):
+        raise VIBConfigError(
+            f"{path}'s stop threshold was set on rollouts with {len(shared)} of this run's test seeds (from "
+            f"{shared[0]}): it was chosen on the episodes the report would measure. Give --test_seed a range it "
+            "has not seen."
+        )
+
+
+def fit_rnd(cfg: BenchmarkConfig, vib_path: Path, vib: VIBPolicy, seed: int) -> RND:
+    """RND on the training frames as the VIB policy sees them (its preprocessor), saved under rnd/seed_<seed>/."""
     from lerobot.datasets.lerobot_dataset import LeRobotDataset
 
-    directory = cfg.output_dir / "rnd"
+    directory = cfg.output_dir / "rnd" / f"seed_{seed}"
     if (directory / "rnd.safetensors").exists():
         return RND.load(directory)
     preprocessor, _ = make_pre_post_processors(vib.config, pretrained_path=str(vib_path))
@@ -310,12 +427,12 @@ def fit_rnd(cfg: BenchmarkConfig, vib_path: Path, vib: VIBPolicy) -> RND:
         state_key="observation.state" if state else None,
         state_dim=state.shape[0] if state else 0,
         steps=cfg.rnd_steps,
-        seed=cfg.seed,
+        seed=seed,
     )
     model = RND(rnd_cfg).to(cfg.device)
 
     def loader(shuffle: bool):
-        generator = torch.Generator().manual_seed(cfg.seed)
+        generator = torch.Generator().manual_seed(seed)
         data = torch.utils.data.DataLoader(dataset, batch_size=rnd_cfg.batch_size, shuffle=shuffle, generator=generator)
         for batch in data:
             yield preprocessor(batch)
@@ -332,18 +449,23 @@ def fit_rnd(cfg: BenchmarkConfig, vib_path: Path, vib: VIBPolicy) -> RND:
 # -------------------------------------------------------------------------------------------------------- cells
 
 
-def cell_path(cfg: BenchmarkConfig, variant: str, condition: str) -> Path:
-    return cfg.output_dir / "cells" / condition / f"{variant}.json"
+def cell_path(cfg: BenchmarkConfig, variant: str, condition: str, seed: int, runtime: str | None = None) -> Path:
+    """A test cell: cells/<condition>/<variant>/seed_<seed>.json; a validation cell:
+    validation/<variant>/seed_<seed>/<run time>.json."""
+    if condition == VALIDATION:
+        return cfg.output_dir / VALIDATION / variant / f"seed_{seed}" / f"{runtime.replace(':', '_')}.json"
+    return cfg.output_dir / "cells" / condition / variant / f"seed_{seed}.json"
 
 
 def cell_seeds(cfg: BenchmarkConfig, variant: str, condition: str) -> list[int]:
-    start = cfg.calibration_seed if condition == CALIBRATION else cfg.eval_seed
-    return list(range(start, start + cfg.episodes(variant, condition)))
+    if condition == VALIDATION:
+        return cfg.validation_seeds()
+    return cfg.test_seeds()[: cfg.episodes(variant, condition)]
 
 
 def run_cell(cfg: BenchmarkConfig, variant: str, condition: str, policy, processors: tuple) -> dict:
     """Evaluate one row under one condition with LeRobot's eval loop; u per step of every episode."""
-    env_cfg = dataclasses.replace(cfg.env, perturbation=CONDITIONS["normal" if condition == CALIBRATION else condition])
+    env_cfg = dataclasses.replace(cfg.env, perturbation=CONDITIONS["normal" if condition == VALIDATION else condition])
     seeds = cell_seeds(cfg, variant, condition)
     batch = min(cfg.eval_batch_size, len(seeds))
     vec_envs = make_env(env_cfg, n_envs=batch, use_async_envs=False)
@@ -382,75 +504,143 @@ def _write_json(path: Path, data: Any) -> None:
     tmp.replace(path)  # a cell file exists only when complete
 
 
-def planned_cells(cfg: BenchmarkConfig) -> list[tuple[str, str]]:
-    cells = [(v, c) for c in cfg.conditions for v in cfg.variants]
-    cells += [(v, CALIBRATION) for v in cfg.variants if VARIANTS[v].score is not None]
+Cell = tuple[str, str, int, str | None]  # (variant, condition, training seed, run time of a validation cell)
+
+
+def planned_cells(cfg: BenchmarkConfig, seeds: list[int] | None = None) -> list[Cell]:
+    """Per training seed: the validation cells, then the test cells (whose run times they choose)."""
+    cells: list[Cell] = []
+    for seed in cfg.train_seeds if seeds is None else seeds:
+        cells += [(v, VALIDATION, seed, rt) for v in cfg.variants for rt in cfg.validated(v)]
+        cells += [(v, c, seed, None) for c in cfg.conditions for v in cfg.variants]
     return cells
 
 
-def run_benchmark(cfg: BenchmarkConfig) -> dict:
+def choose_runtime(cfg: BenchmarkConfig, variant: str, seed: int) -> dict:
+    """A row's run time at one training seed: its own, or the candidate (`--runtimes`) with the most validation
+    successes, a tie going to the one listed first. Reads only validation cells."""
+    v = VARIANTS[variant]
+    if v.ensemble != CHOSEN:
+        return {"runtime": v.runtime(), "chosen_on": None}
+    successes = {}
+    for rt in cfg.runtimes:
+        cell = json.loads(cell_path(cfg, variant, VALIDATION, seed, rt).read_text())
+        successes[rt] = [sum(cell["success"]), len(cell["success"])]
+    best = max(cfg.runtimes, key=lambda rt: (successes[rt][0], -cfg.runtimes.index(rt)))
+    return {"runtime": best, "chosen_on": successes}
+
+
+def load_network(network: str, path: Path, device: str):
+    """A trained network in eval mode; a VIB one records the paper's rate as u (Table I's score)."""
+    from lerobot.policies.factory import get_policy_class
+
+    config = PreTrainedConfig.from_pretrained(path)
+    if NETWORKS[network] == "vib":
+        # Table I's rows are the paper's: VIB's u is its rate (benchmarks/uncertainty_scores.py compares scores).
+        config.uncertainty_score = "rate"
+        return VIBPolicy.from_pretrained(path, config=config).to(device).eval()
+    return get_policy_class(config.type).from_pretrained(path, config=config).to(device).eval()
+
+
+def run_benchmark(cfg: BenchmarkConfig, report_only: bool = False) -> dict | None:
+    for network in ("vib", "act"):
+        if (given := given_checkpoint(network, cfg)) is not None:
+            check_given_checkpoint(Path(given), cfg)
     cfg.output_dir.mkdir(parents=True, exist_ok=True)
     check_resumable(cfg)
-    with WallClock(cfg.output_dir / "wall_time.json") as clock:
-        _run_cells(cfg, clock)
-    cells = {(v, c): json.loads(cell_path(cfg, v, c).read_text()) for v, c in planned_cells(cfg)}
+    if not report_only:
+        with WallClock(cfg.output_dir / "wall_time.json") as clock:
+            _run_cells(cfg, clock)
+        if cfg.train_only:
+            return None
+    cells = {}
+    for cell in planned_cells(cfg):
+        path = cell_path(cfg, *cell)
+        if path.exists():
+            cells[cell] = json.loads(path.read_text())
     return write_report(cfg, cells, WallClock.total(cfg.output_dir / "wall_time.json"))
 
 
 def _run_cells(cfg: BenchmarkConfig, clock: "WallClock") -> None:
     _write_json(cfg.output_dir / "config.json", _config_record(cfg))
-    todo = [(v, c) for v, c in planned_cells(cfg) if not cell_path(cfg, v, c).exists()]
-    logger.info("%d cells planned, %d to run.", len(planned_cells(cfg)), len(todo))
-    if todo:
-        paths = {n: train(n, cfg) for n in ("vib", "act") if cfg.needs(n)}
-        vib = None
-        if "vib" in paths:
-            vib_config = PreTrainedConfig.from_pretrained(paths["vib"])
-            # Table I's rows are the paper's: VIB's u is its rate (benchmarks/uncertainty_scores.py compares scores).
-            vib_config.uncertainty_score = "rate"
-            vib = VIBPolicy.from_pretrained(paths["vib"], config=vib_config).to(cfg.device).eval()
-        act = ACTPolicy.from_pretrained(paths["act"]).to(cfg.device).eval() if "act" in paths else None
-        rnd = fit_rnd(cfg, paths["vib"], vib).to(cfg.device) if cfg.needs("rnd") else None
-        _write_json(cfg.output_dir / "scores.json", score_statistics(vib, rnd))
-        processors = {}
-        for name, policy in (("vib", vib), ("act", act)):
-            if policy is not None:
-                processors[name] = make_pre_post_processors(
-                    policy.config,
-                    pretrained_path=str(paths[name]),
-                    preprocessor_overrides={"device_processor": {"device": cfg.device}},
-                )
-        for variant, condition in tqdm(todo, desc="cells", unit="cell"):
-            policy = build_variant(variant, vib, act, rnd)
-            cell = run_cell(cfg, variant, condition, policy, processors[VARIANTS[variant].chunks])
-            _write_json(cell_path(cfg, variant, condition), cell)
-            clock.tick()
-            logger.info(
-                "%s / %s: %d/%d in %.0f s",
-                condition,
-                variant,
-                sum(cell["success"]),
-                len(cell["success"]),
-                cell["wall_s"],
-            )
+    if cfg.train_only:
+        for seed in cfg.train_seeds:
+            for network in cfg.networks():
+                train(network, cfg, seed)
+                clock.tick()
+        return
+    for seed in cfg.train_seeds:
+        todo = [c for c in planned_cells(cfg, [seed]) if not cell_path(cfg, *c).exists()]
+        logger.info("Training seed %d: %d cells planned, %d to run.", seed, len(planned_cells(cfg, [seed])), len(todo))
+        if todo:
+            _run_seed(cfg, seed, todo, clock)
 
 
-def score_statistics(vib: VIBPolicy | None, rnd: RND | None) -> dict:
-    """Each score's training mean and the paper's threshold mean(u) + 2 std(u) on it."""
+def _run_seed(cfg: BenchmarkConfig, seed: int, todo: list[Cell], clock: "WallClock") -> None:
+    paths = {}
+    for network in cfg.networks():
+        paths[network] = train(network, cfg, seed)
+        clock.tick()
+    nets = {n: load_network(n, p, cfg.device) for n, p in paths.items()}
+    rnd = fit_rnd(cfg, paths["vib"], nets["vib"], seed).to(cfg.device) if cfg.needs("rnd") else None
+    _write_json(cfg.output_dir / "scores" / f"seed_{seed}.json", score_statistics(nets, rnd))
+    processors = {
+        n: make_pre_post_processors(
+            policy.config,
+            pretrained_path=str(paths[n]),
+            preprocessor_overrides={"device_processor": {"device": cfg.device}},
+        )
+        for n, policy in nets.items()
+    }
+    choices_file = cfg.output_dir / "choices.json"
+    for variant, condition, _, runtime in tqdm(todo, desc=f"cells, seed {seed}", unit="cell"):
+        if condition != VALIDATION:
+            choice = choose_runtime(cfg, variant, seed)
+            choices = json.loads(choices_file.read_text()) if choices_file.exists() else {}
+            choices.setdefault(variant, {})[str(seed)] = {**choice, "validation_seeds": cfg.validation_seeds()}
+            _write_json(choices_file, choices)
+            runtime_used = choice["runtime"]
+        else:
+            runtime_used = runtime
+        policy = build_variant(variant, nets, rnd, runtime_used)
+        cell = run_cell(cfg, variant, condition, policy, processors[VARIANTS[variant].chunks])
+        cell.update(train_seed=seed, runtime=runtime_used)
+        _write_json(cell_path(cfg, variant, condition, seed, runtime), cell)
+        clock.tick()
+        logger.info(
+            "seed %d, %s / %s (%s): %d/%d in %.0f s",
+            seed,
+            condition,
+            variant,
+            runtime_used,
+            sum(cell["success"]),
+            len(cell["success"]),
+            cell["wall_s"],
+        )
+
+
+def score_statistics(nets: dict, rnd: RND | None) -> dict:
+    """Each score's training mean and the paper's threshold mean(u) + 2 std(u) on it, keyed as the rows'
+    `score` (a VIB network's name, or "rnd")."""
     stats = {}
-    if vib is not None:
+    for name, vib in nets.items():
+        if NETWORKS[name] != "vib":
+            continue
         c = vib.config.calibration
         mean, std = (
             (c.rate_mean, c.rate_std) if c.rate_mean is not None else (vib.rate_tracker.mean, vib.rate_tracker.std)
         )
-        stats["vib"] = {"mean": mean, "std": std, "mean_2std": mean_plus_2std_gamma(mean, std)}
+        stats[name] = {"mean": mean, "std": std, "mean_2std": mean_plus_2std_gamma(mean, std)}
     if rnd is not None:
         stats["rnd"] = {"mean": float(rnd.error_mean), "std": float(rnd.error_std), "mean_2std": rnd.threshold()}
     return stats
 
 
 # What a saved cell depends on: a rerun with other values must not mix its cells with the saved ones.
-RESUME_KEYS = ("dataset", "env", "preset", "steps", "rnd_steps", "vib_checkpoint", "act_checkpoint", "seed", "device")
+RESUME_KEYS = (
+    "dataset", "env", "preset", "steps", "rnd_steps", "vib_checkpoint", "act_checkpoint", "device",
+    "validation_seed", "test_seed", "runtimes",
+)  # fmt: skip
 
 
 def check_resumable(cfg: BenchmarkConfig) -> None:
@@ -463,12 +653,12 @@ def check_resumable(cfg: BenchmarkConfig) -> None:
                 f"{cfg.output_dir} holds a benchmark run with other {', '.join(changed)}; its cells would mix with "
                 "this run's. Use another --output_dir, or rerun with the same settings to resume."
             )
-    for variant, condition in planned_cells(cfg):
-        cell = cell_path(cfg, variant, condition)
-        if cell.exists() and json.loads(cell.read_text())["seeds"] != cell_seeds(cfg, variant, condition):
+    for cell in planned_cells(cfg):
+        file = cell_path(cfg, *cell)
+        if file.exists() and json.loads(file.read_text())["seeds"] != cell_seeds(cfg, cell[0], cell[1]):
             raise VIBConfigError(
-                f"{cell} was evaluated on other episode seeds (another --n_episodes, --n_episodes_other, "
-                "--calibration_episodes or seed): use another --output_dir, or the settings it was made with."
+                f"{file} was evaluated on other episode seeds (another --n_episodes, --n_episodes_other, "
+                "--validation_episodes or seed): use another --output_dir, or the settings it was made with."
             )
 
 
@@ -548,8 +738,8 @@ def _config_record(cfg: BenchmarkConfig) -> dict:
 
 
 @parser.wrap()
-def benchmark(cfg: BenchmarkConfig) -> dict:
-    return run_benchmark(cfg)
+def benchmark(cfg: BenchmarkConfig) -> dict | None:
+    return run_benchmark(cfg, report_only=cfg.report_only)
 
 
 def main() -> None:

@@ -1,7 +1,13 @@
 """The benchmark's report: success with Wilson intervals, the uncertainty metrics (metrics.py), and the plots.
 
-Every number comes from the saved cells (`<output_dir>/cells/<condition>/<variant>.json`) and the scores'
-training statistics (`scores.json`), so the report can be rebuilt at any time from what is on disk.
+Every number comes from the saved cells (`<output_dir>/cells/<condition>/<variant>/seed_<s>.json`, the validation
+cells under `validation/`), the choices made on validation (`choices.json`) and the scores' training statistics
+(`scores/seed_<s>.json`), so the report can be rebuilt at any time from what is on disk, also from a run that
+has not finished (it says which cells it lacks).
+
+Success is given pooled over the training seeds (k/n with a 95% Wilson interval, which counts episodes and so
+understates the spread from training) and as the mean and range of the per-seed rates (the spread from
+training, over few seeds).
 """
 
 from __future__ import annotations
@@ -18,17 +24,37 @@ import numpy as np
 from ..calibration import conformal_gamma, conformal_min_scores
 from ..metrics import auroc, roc_curve, stop_metrics, time_indexed_band, wilson_interval
 from ..sim.perturbations import CONDITIONS, draw_scene_episode
-from ..variants import VARIANTS
+from ..variants import CHOSEN, VARIANTS
 
 logger = logging.getLogger(__name__)
 
 THRESHOLDS = ("mean_2std", "conformal", "band")
 
 
+VALIDATION = "validation"
+
+
 def success_cell(cell: dict) -> dict:
-    k, n = sum(cell["success"]), len(cell["success"])
+    return _wilson(sum(cell["success"]), len(cell["success"]))
+
+
+def _wilson(k: int, n: int) -> dict:
     low, high = wilson_interval(k, n)
     return {"k": k, "n": n, "pc": 100 * k / n, "low": 100 * low, "high": 100 * high}
+
+
+def success_over_seeds(per_seed: dict[int, dict]) -> dict:
+    """Pooled k/n with its Wilson interval, and the mean and range of the per-seed success rates."""
+    pooled = _wilson(sum(c["k"] for c in per_seed.values()), sum(c["n"] for c in per_seed.values()))
+    rates = [c["pc"] for c in per_seed.values()]
+    return {
+        **pooled,
+        "per_seed": {str(s): c for s, c in per_seed.items()},
+        "n_seeds": len(rates),
+        "mean_pc": float(np.mean(rates)),
+        "min_pc": min(rates),
+        "max_pc": max(rates),
+    }
 
 
 def thresholds(calibration: dict, train_gamma: float | None, alpha: float) -> dict[str, Any]:
@@ -52,18 +78,27 @@ def occlusion_onsets(cell: dict) -> list[int | None]:
     return [draw_scene_episode(CONDITIONS["occlusion"], seed).occluded_steps.start for seed in cell["seeds"]]
 
 
-def uncertainty(cells: dict, variant: str, conditions: list[str], train_gamma: float | None, alpha: float) -> dict:
-    clean = cells.get((variant, "normal"))
+def uncertainty(
+    cells: dict[str, dict],
+    calibration: dict,
+    variant: str,
+    conditions: list[str],
+    train_gamma: float | None,
+    alpha: float,
+) -> dict:
+    """The metrics of one scored row at one training seed: `cells` its test cells by condition, `calibration`
+    its validation cell (clean, at the run time it was tested with), where the thresholds are set."""
+    clean = cells.get("normal")
     result: dict[str, Any] = {"score": VARIANTS[variant].score, "auroc": {}, "failure_auroc_clean": None, "stops": {}}
-    result["thresholds"] = thresholds(cells[(variant, "calibration")], train_gamma, alpha)
+    result["thresholds"] = thresholds(calibration, train_gamma, alpha)
     if clean is None:
         return result
     clean_frames = np.concatenate([np.asarray(t) for t in clean["u"]])
     clean_max = [max(t) for t in clean["u"]]
     for condition in conditions:
-        if condition == "normal":
+        if condition == "normal" or condition not in cells:
             continue
-        cell = cells[(variant, condition)]
+        cell = cells[condition]
         frames = np.concatenate([np.asarray(t) for t in cell["u"]])
         result["auroc"][condition] = {
             "frames": auroc(clean_frames, frames),
@@ -73,7 +108,7 @@ def uncertainty(cells: dict, variant: str, conditions: list[str], train_gamma: f
     succeeded = [m for m, s in zip(clean_max, clean["success"], strict=True) if s]
     if failed and succeeded:
         result["failure_auroc_clean"] = auroc(succeeded, failed)
-    occluded = cells.get((variant, "occlusion"))
+    occluded = cells.get("occlusion")
     for name in THRESHOLDS:
         gamma = result["thresholds"][name]
         if gamma is None:
@@ -119,10 +154,14 @@ def training_curve(log_text: str) -> list[dict]:
 
 
 def training_curves(out: Path) -> dict[str, list[dict]]:
-    """The loss curves of the networks this benchmark trained (none for given checkpoints)."""
-    logs = {net: out / "train" / f"{net}.log" for net in ("vib", "act")}
-    curves = {net: training_curve(log.read_text(errors="replace")) for net, log in logs.items() if log.exists()}
-    return {net: curve for net, curve in curves.items() if curve}
+    """The loss curves of the networks this benchmark trained (none for given checkpoints), keyed
+    "<network> seed <s>"."""
+    curves = {}
+    for log in sorted((out / "train").glob("*/seed_*.log")):
+        curve = training_curve(log.read_text(errors="replace"))
+        if curve:
+            curves[f"{log.parent.name} seed {log.stem.removeprefix('seed_')}"] = curve
+    return curves
 
 
 def _pct(k: int, n: int) -> str:
@@ -133,26 +172,89 @@ def _num(x: float | None, fmt: str = ".2f") -> str:
     return "-" if x is None else format(x, fmt)
 
 
+def runtime_of(choices: dict, variant: str, seed: int) -> str | None:
+    """The run time a row was tested with at a training seed: chosen on validation, or its own."""
+    if VARIANTS[variant].ensemble != CHOSEN:
+        return VARIANTS[variant].runtime()
+    return choices.get(variant, {}).get(str(seed), {}).get("runtime")
+
+
+def protocol_flags(cfg, cells: dict, choices: dict, planned: int) -> list[str]:
+    """What keeps this report from carrying a claim, each said in one line; empty when nothing does."""
+    flags = []
+    test = set(cfg.test_seeds())
+    for variant, by_seed in choices.items():
+        for seed, choice in by_seed.items():
+            if shared := test & set(choice.get("validation_seeds") or []):
+                flags.append(
+                    f"VIOLATION: {VARIANTS[variant].label}'s run time at training seed {seed} was chosen on "
+                    f"{len(shared)} test episodes"
+                )
+    for name in ("vib_checkpoint", "act_checkpoint"):
+        if getattr(cfg, name) is not None:
+            flags.append(
+                f"--{name} was given: how that checkpoint (and its recipe) was chosen is outside this run and "
+                "not checked, beyond its recorded stop threshold"
+            )
+    if len(cfg.train_seeds) < 3:
+        flags.append(f"{len(cfg.train_seeds)} training seed(s): the spread over training is not measured (use 3+)")
+    if len(cells) < planned:
+        flags.append(f"incomplete: {len(cells)} of {planned} cells evaluated; rerun the command to finish")
+    return flags
+
+
 def write_report(cfg, cells: dict, wall_s: float) -> dict:
+    """`cells`: (variant, condition, training seed, run time of a validation cell) -> saved cell."""
     import lerobot
     import torch
 
+    from .benchmark import planned_cells
+
     out = Path(cfg.output_dir)
-    scores = json.loads((out / "scores.json").read_text()) if (out / "scores.json").exists() else {}
+    choices = json.loads((out / "choices.json").read_text()) if (out / "choices.json").exists() else {}
+    scores = {
+        seed: json.loads(f.read_text())
+        for seed in cfg.train_seeds
+        if (f := out / "scores" / f"seed_{seed}.json").exists()
+    }
     results: dict[str, Any] = {
         "config": json.loads((out / "config.json").read_text()),
         "wall_s": wall_s,
         "versions": {"python": platform.python_version(), "torch": torch.__version__, "lerobot": lerobot.__version__},
-        "scores": scores,
-        "success": {v: {c: success_cell(cells[(v, c)]) for c in cfg.conditions} for v in cfg.variants},
+        "protocol": {
+            "train_seeds": list(cfg.train_seeds),
+            "validation_seeds": [cfg.validation_seeds()[0], cfg.validation_seeds()[-1]],
+            "test_seeds": [cfg.test_seeds()[0], cfg.test_seeds()[-1]],
+            "runtimes": list(cfg.runtimes),
+            "flags": protocol_flags(cfg, cells, choices, len(planned_cells(cfg))),
+        },
+        "choices": choices,
+        "scores": {str(k): v for k, v in scores.items()},
+        "success": {},
+        "validation": {},
         "uncertainty": {},
         "training": training_curves(out),
     }
     for v in cfg.variants:
+        for c in cfg.conditions:
+            per_seed = {s: success_cell(cells[(v, c, s, None)]) for s in cfg.train_seeds if (v, c, s, None) in cells}
+            if per_seed:
+                results["success"].setdefault(v, {})[c] = success_over_seeds(per_seed)
+        for (cv, cc, seed, rt), cell in cells.items():
+            if cv == v and cc == VALIDATION:
+                results["validation"].setdefault(v, {}).setdefault(str(seed), {})[rt] = success_cell(cell)
         score = VARIANTS[v].score
-        if score is not None:
-            gamma = scores.get(score, {}).get("mean_2std")
-            results["uncertainty"][v] = uncertainty(cells, v, cfg.conditions, gamma, cfg.alpha)
+        if score is None:
+            continue
+        for seed in cfg.train_seeds:
+            calibration = cells.get((v, VALIDATION, seed, runtime_of(choices, v, seed)))
+            by_condition = {c: cells[(v, c, seed, None)] for c in cfg.conditions if (v, c, seed, None) in cells}
+            if calibration is None or not by_condition:
+                continue
+            gamma = scores.get(seed, {}).get(score, {}).get("mean_2std")
+            results["uncertainty"].setdefault(v, {})[str(seed)] = uncertainty(
+                by_condition, calibration, v, cfg.conditions, gamma, cfg.alpha
+            )
     (out / "results.json").write_text(json.dumps(results, indent=1))
     plots = _plots(cfg, cells, results, out)
     (out / "report.md").write_text(_markdown(cfg, results, plots))
@@ -160,8 +262,18 @@ def write_report(cfg, cells: dict, wall_s: float) -> dict:
     return results
 
 
+def _success_text(s: dict | None) -> str:
+    if s is None:
+        return "-"
+    text = f"{s['k']}/{s['n']} = {s['pc']:.0f}% [{s['low']:.0f}-{s['high']:.0f}]"
+    if s["n_seeds"] > 1:
+        text += f"; {s['mean_pc']:.0f} ({s['min_pc']:.0f}-{s['max_pc']:.0f})"
+    return text
+
+
 def _markdown(cfg, results: dict, plots: list[str]) -> str:
-    c = results["config"]
+    c, p = results["config"], results["protocol"]
+    seeds = ", ".join(str(s) for s in p["train_seeds"])
     lines = [
         "# lerobot-vib-benchmark",
         "",
@@ -171,17 +283,59 @@ def _markdown(cfg, results: dict, plots: list[str]) -> str:
         f"- Machine: {c['machine']['processor'] or c['machine']['platform']}, {c['machine']['cpus']} CPUs; "
         + ", ".join(f"{k} {v}" for k, v in results["versions"].items()),
         f"- Wall time: {results['wall_s'] / 60:.1f} min (every invocation; a killed one to its last beat, <= 30 s)",
-        f"- Episode seeds: {cfg.eval_seed}.. per condition for every row; calibration {cfg.calibration_seed}..",
+        f"- Training seeds: {seeds}: every network is trained once per seed and every cell evaluated per seed.",
+        f"- Protocol: every choice (the run time of each row marked *chosen*, among {', '.join(p['runtimes'])}; "
+        f"the thresholds) was made on clean validation episodes, seeds {p['validation_seeds'][0]}-"
+        f"{p['validation_seeds'][1]}. Every number below is on test seeds {p['test_seeds'][0]}-"
+        f"{p['test_seeds'][1]} (the same seeds per condition for every row), which no choice saw.",
+    ]
+    if p["flags"]:
+        lines += ["", "**Limits of this run:**", ""] + [f"- {f}" for f in p["flags"]]
+    lines += [
         "",
-        "## Success (episodes succeeded / evaluated, 95% Wilson interval)",
+        "## Success",
+        "",
+        "Episodes succeeded / evaluated, pooled over the training seeds [95% Wilson interval]; then, with more than "
+        "one training seed, the mean success % over the seeds (lowest-highest).",
         "",
         "| variant | " + " | ".join(cfg.conditions) + " |",
         "| --- |" + " --- |" * len(cfg.conditions),
     ]
     for v in cfg.variants:
-        cells = [results["success"][v][cond] for cond in cfg.conditions]
-        row = [f"{s['k']}/{s['n']} = {s['pc']:.0f}% [{s['low']:.0f}-{s['high']:.0f}]" for s in cells]
+        row = [_success_text(results["success"].get(v, {}).get(cond)) for cond in cfg.conditions]
         lines.append(f"| {VARIANTS[v].label} | " + " | ".join(row) + " |")
+    if "normal" in cfg.conditions and len(cfg.train_seeds) > 1:
+        lines += [
+            "",
+            "Per training seed, normal condition:",
+            "",
+            "| variant | " + " | ".join(f"seed {s}" for s in cfg.train_seeds) + " |",
+            "| --- |" + " --- |" * len(cfg.train_seeds),
+        ]
+        for v in cfg.variants:
+            per_seed = results["success"].get(v, {}).get("normal", {}).get("per_seed", {})
+            row = [_pct(x["k"], x["n"]) if (x := per_seed.get(str(s))) else "-" for s in cfg.train_seeds]
+            lines.append(f"| {VARIANTS[v].label} | " + " | ".join(row) + " |")
+    chosen = [v for v in cfg.variants if VARIANTS[v].ensemble == CHOSEN]
+    if chosen:
+        lines += [
+            "",
+            "## Run times chosen on validation",
+            "",
+            "Successes on the clean validation episodes per candidate; the most wins, a tie goes to the one listed "
+            "first.",
+            "",
+            "| variant | training seed | chosen | " + " | ".join(cfg.runtimes) + " |",
+            "| --- | --- | --- |" + " --- |" * len(cfg.runtimes),
+        ]
+        for v in chosen:
+            for seed in cfg.train_seeds:
+                val = results["validation"].get(v, {}).get(str(seed), {})
+                if not val:
+                    continue
+                choice = results["choices"].get(v, {}).get(str(seed), {}).get("runtime", "-")
+                row = [_pct(x["k"], x["n"]) if (x := val.get(rt)) else "-" for rt in cfg.runtimes]
+                lines.append(f"| {VARIANTS[v].label} | {seed} | {choice} | " + " | ".join(row) + " |")
     if results["training"]:
         lines += [
             "",
@@ -193,7 +347,7 @@ def _markdown(cfg, results: dict, plots: list[str]) -> str:
         for net, curve in results["training"].items():
             first, half, last = curve[0], curve[len(curve) // 2], curve[-1]
             lines.append(
-                f"| {net.upper()} | {first['step']}-{last['step']} | {first['l1']:.3f} (step {first['step']}) | "
+                f"| {net} | {first['step']}-{last['step']} | {first['l1']:.3f} (step {first['step']}) | "
                 f"{half['l1']:.3f} (step {half['step']}) | {last['l1']:.3f} | {_num(last['rate'])} |"
             )
     if results["uncertainty"]:
@@ -202,17 +356,25 @@ def _markdown(cfg, results: dict, plots: list[str]) -> str:
             "",
             "## Uncertainty: AUROC of u separating clean (normal) from perturbed rollouts",
             "",
-            "Frames: every step's u; episodes: each episode's max u. 0.5 is chance. The last column: an "
-            "episode's max u predicting failure among the clean episodes.",
+            "u is the paper's rate over its training mean. Frames: every step's u; episodes: each episode's max u. "
+            "0.5 is chance. The last column: an episode's max u predicting failure among the clean episodes.",
             "",
-            "| variant (score) | " + " | ".join(f"{p} frames / episodes" for p in perturbed) + " | clean failure |",
+            "| variant (score), training seed | "
+            + " | ".join(f"{p} frames / episodes" for p in perturbed)
+            + " | clean failure |",
             "| --- |" + " --- |" * (len(perturbed) + 1),
         ]
-        for v, u in results["uncertainty"].items():
-            row = [f"{_num(u['auroc'][p]['frames'])} / {_num(u['auroc'][p]['episodes'])}" for p in perturbed]
-            lines.append(
-                f"| {VARIANTS[v].label} ({u['score']}) | " + " | ".join(row) + f" | {_num(u['failure_auroc_clean'])} |"
-            )
+        for v, by_seed in results["uncertainty"].items():
+            for seed, u in by_seed.items():
+                row = [
+                    f"{_num(u['auroc'][p]['frames'])} / {_num(u['auroc'][p]['episodes'])}" if p in u["auroc"] else "-"
+                    for p in perturbed
+                ]
+                lines.append(
+                    f"| {VARIANTS[v].label} ({u['score']}), {seed} | "
+                    + " | ".join(row)
+                    + f" | {_num(u['failure_auroc_clean'])} |"
+                )
         lines += [
             "",
             f"## The safety stop, judged offline on the recorded u (alpha = {cfg.alpha})",
@@ -220,32 +382,35 @@ def _markdown(cfg, results: dict, plots: list[str]) -> str:
             "A rollout stops at its first step with u above the threshold. False stops: clean (normal) episodes "
             "that stop. On occlusion: stops at or after the occluder's entry, stops before it (early, also "
             "false), and the mean delay in steps from entry to stop. Thresholds: the paper's mean + 2 std of "
-            "the training frames; split-conformal on the calibration rollouts' max u; the time-indexed band.",
+            "the training frames; split-conformal on the validation rollouts' max u; the time-indexed band.",
             "",
-            "| variant | threshold | gamma | false stops (clean) | occlusion stops | early | mean delay |",
+            "| variant, training seed | threshold | gamma | false stops (clean) | occlusion stops | early | "
+            "mean delay |",
             "| --- | --- | --- | --- | --- | --- | --- |",
         ]
-        for v, u in results["uncertainty"].items():
-            for name in THRESHOLDS:
-                gamma, row = u["thresholds"][name], u["stops"].get(name)
-                if row is None:
-                    lines.append(f"| {VARIANTS[v].label} | {name} | - | - | - | - | - |")
-                    continue
-                shown = f"{min(gamma):.2f}-{max(gamma):.2f}" if isinstance(gamma, list) else f"{gamma:.2f}"
-                occ = ["-", "-", "-"]
-                if "occlusion_episodes" in row:
-                    occ = [
-                        _pct(row["occlusion_stops"], row["occlusion_episodes"]),
-                        str(row["early_stops"]),
-                        _num(row["mean_delay"], ".1f"),
-                    ]
-                lines.append(
-                    f"| {VARIANTS[v].label} | {name} | {shown} | {_pct(row['false_stops'], row['clean_episodes'])} | "
-                    + " | ".join(occ)
-                    + " |"
-                )
-            for note in u["thresholds"]["notes"]:
-                lines.append(f"\n_{VARIANTS[v].label}: {note}._")
+        for v, by_seed in results["uncertainty"].items():
+            for seed, u in by_seed.items():
+                label = f"{VARIANTS[v].label}, {seed}"
+                for name in THRESHOLDS:
+                    gamma, row = u["thresholds"][name], u["stops"].get(name)
+                    if row is None:
+                        lines.append(f"| {label} | {name} | - | - | - | - | - |")
+                        continue
+                    shown = f"{min(gamma):.2f}-{max(gamma):.2f}" if isinstance(gamma, list) else f"{gamma:.2f}"
+                    occ = ["-", "-", "-"]
+                    if "occlusion_episodes" in row:
+                        occ = [
+                            _pct(row["occlusion_stops"], row["occlusion_episodes"]),
+                            str(row["early_stops"]),
+                            _num(row["mean_delay"], ".1f"),
+                        ]
+                    lines.append(
+                        f"| {label} | {name} | {shown} | {_pct(row['false_stops'], row['clean_episodes'])} | "
+                        + " | ".join(occ)
+                        + " |"
+                    )
+                for note in u["thresholds"]["notes"]:
+                    lines.append(f"\n_{label}: {note}._")
     if plots:
         lines += ["", "## Plots", ""] + [f"![{p}]({p})" for p in plots]
     return "\n".join(lines) + "\n"
@@ -261,52 +426,70 @@ def _plots(cfg, cells: dict, results: dict, out: Path) -> list[str]:
         logger.warning("matplotlib is not installed: no plots.")
         return []
     written = []
-    fig, ax = plt.subplots(figsize=(max(6, 1.6 * len(cfg.conditions)), 4))
-    width = 0.8 / len(cfg.variants)
-    for i, v in enumerate(cfg.variants):
-        s = [results["success"][v][c] for c in cfg.conditions]
-        x = np.arange(len(cfg.conditions)) + (i - (len(cfg.variants) - 1) / 2) * width
-        pc = np.array([c["pc"] for c in s])
-        err = np.array([[c["pc"] - c["low"] for c in s], [c["high"] - c["pc"] for c in s]])
-        ax.bar(x, pc, width, yerr=err, capsize=2, label=VARIANTS[v].label)
-    ax.set_xticks(np.arange(len(cfg.conditions)), cfg.conditions)
-    ax.set_ylabel("success % (95% Wilson)")
-    ax.set_ylim(0, 100)
-    ax.legend(fontsize=7, ncol=2, loc="upper right")
-    fig.tight_layout()
-    fig.savefig(out / "success.png", dpi=120)
-    plt.close(fig)
-    written.append("success.png")
+    rows = [v for v in cfg.variants if v in results["success"]]
+    if rows:
+        fig, ax = plt.subplots(figsize=(max(6, 1.6 * len(cfg.conditions)), 4))
+        width = 0.8 / len(rows)
+        for i, v in enumerate(rows):
+            x0 = np.arange(len(cfg.conditions)) + (i - (len(rows) - 1) / 2) * width
+            present = [(x, results["success"][v][c]) for x, c in zip(x0, cfg.conditions, strict=True)
+                       if c in results["success"][v]]  # fmt: skip
+            x = np.array([p[0] for p in present])
+            s = [p[1] for p in present]
+            pc = np.array([c["pc"] for c in s])
+            err = np.array([[c["pc"] - c["low"] for c in s], [c["high"] - c["pc"] for c in s]])
+            ax.bar(x, pc, width, yerr=err, capsize=2, label=VARIANTS[v].label)
+            for xi, c in zip(x, s, strict=True):  # one dot per training seed
+                if c["n_seeds"] > 1:
+                    rates = [r["pc"] for r in c["per_seed"].values()]
+                    ax.plot([xi] * len(rates), rates, ".", ms=4, color="k")
+        ax.set_xticks(np.arange(len(cfg.conditions)), cfg.conditions)
+        ax.set_ylabel("success % (pooled, 95% Wilson; dots: seeds)")
+        ax.set_ylim(0, 100)
+        ax.legend(fontsize=7, ncol=2, loc="upper right")
+        fig.tight_layout()
+        fig.savefig(out / "success.png", dpi=120)
+        plt.close(fig)
+        written.append("success.png")
 
     if results["training"]:
         fig, ax = plt.subplots(figsize=(6, 3.5))
         for net, curve in results["training"].items():
-            ax.plot([p["step"] for p in curve], [p["l1"] for p in curve], label=net.upper())
+            ax.plot([p["step"] for p in curve], [p["l1"] for p in curve], label=net, lw=1)
         ax.set_xlabel("training step")
         ax.set_ylabel("L1 (normalized actions, log scale)")
         ax.set_yscale("log")
         ax.set_title("Learning curves", fontsize=9)
-        ax.legend(fontsize=8)
+        ax.legend(fontsize=7)
         fig.tight_layout()
         fig.savefig(out / "learning_curve.png", dpi=120)
         plt.close(fig)
         written.append("learning_curve.png")
 
-    scored = [v for v in results["uncertainty"] if (v, "normal") in cells]
+    # The ROC curves and traces of the first training seed that has them.
     perturbed = [c for c in cfg.conditions if c != "normal"]
+    scored = [
+        (v, int(seed))
+        for v, by_seed in results["uncertainty"].items()
+        for seed in list(by_seed)[:1]
+        if (v, "normal", int(seed), None) in cells
+    ]
     if scored and perturbed:
         ncols = min(3, len(scored))
         nrows = -(-len(scored) // ncols)
         fig, axes = plt.subplots(nrows, ncols, figsize=(4 * ncols, 4 * nrows), squeeze=False)
         for ax in axes.flat[len(scored) :]:
             ax.set_visible(False)
-        for ax, v in zip(axes.flat, scored, strict=False):  # the grid may have spare axes
-            clean_max = [max(t) for t in cells[(v, "normal")]["u"]]
+        for ax, (v, seed) in zip(axes.flat, scored, strict=False):  # the grid may have spare axes
+            clean_max = [max(t) for t in cells[(v, "normal", seed, None)]["u"]]
+            aurocs = results["uncertainty"][v][str(seed)]["auroc"]
             for c in perturbed:
-                fpr, tpr = roc_curve(clean_max, [max(t) for t in cells[(v, c)]["u"]])
-                ax.plot(fpr, tpr, label=f"{c} ({results['uncertainty'][v]['auroc'][c]['episodes']:.2f})")
+                if (v, c, seed, None) not in cells:
+                    continue
+                fpr, tpr = roc_curve(clean_max, [max(t) for t in cells[(v, c, seed, None)]["u"]])
+                ax.plot(fpr, tpr, label=f"{c} ({aurocs[c]['episodes']:.2f})")
             ax.plot([0, 1], [0, 1], "k:", lw=0.8)
-            ax.set_title(f"{VARIANTS[v].label}: episode max u", fontsize=9)
+            ax.set_title(f"{VARIANTS[v].label}, seed {seed}: episode max u", fontsize=9)
             ax.set_xlabel("false-positive rate (clean)")
             ax.set_ylabel("true-positive rate (perturbed)")
             ax.legend(fontsize=7, loc="lower right")
@@ -316,8 +499,8 @@ def _plots(cfg, cells: dict, results: dict, out: Path) -> list[str]:
         written.append("roc.png")
 
     if scored:
-        v = "vib" if "vib" in scored else scored[0]
-        cell = cells[(v, "normal")]
+        v, seed = next(((v, s) for v, s in scored if v in ("vib", "vib_chosen")), scored[0])
+        cell = cells[(v, "normal", seed, None)]
         picks = [
             (label, next((i for i, s in enumerate(cell["success"]) if s == want), None))
             for label, want in (("success", True), ("failure", False))
@@ -326,7 +509,7 @@ def _plots(cfg, cells: dict, results: dict, out: Path) -> list[str]:
         for label, i in picks:
             if i is not None:
                 ax.plot(cell["u"][i], label=f"{label} (seed {cell['seeds'][i]})")
-        th = results["uncertainty"][v]["thresholds"]
+        th = results["uncertainty"][v][str(seed)]["thresholds"]
         if th["mean_2std"] is not None:
             ax.axhline(th["mean_2std"], color="k", ls=":", lw=1, label="mean + 2 std")
         if th["conformal"] is not None:
@@ -336,7 +519,7 @@ def _plots(cfg, cells: dict, results: dict, out: Path) -> list[str]:
         ax.set_xlabel("step")
         ax.set_ylabel("u (log scale)")
         ax.set_yscale("log")
-        ax.set_title(f"{VARIANTS[v].label}, clean episodes (Fig. 3a/b)", fontsize=9)
+        ax.set_title(f"{VARIANTS[v].label}, training seed {seed}, clean episodes (Fig. 3a/b)", fontsize=9)
         ax.legend(fontsize=7, loc="upper right", bbox_to_anchor=(1.0, 1.0))
         fig.tight_layout()
         fig.savefig(out / "traces.png", dpi=120)
