@@ -410,3 +410,26 @@ def test_comparison_rows_train_their_own_networks_and_run_the_run_time_they_are_
     assert (queue.config.temporal_ensemble, queue.config.n_action_steps) == ("none", 10)
     with pytest.raises(ValueError, match="needs the VIB_BETA0"):
         build_variant("vib_beta0", {"vib": vib}, runtime="queue")
+
+
+def test_invocations_side_by_side_each_keep_their_own_wall_time_record(tmp_path):
+    """Two invocations on one output dir (say, one per group of rows) rewrite only their own records."""
+    import threading
+    import time
+
+    path = tmp_path / "wall_time.json"
+    done = threading.Event()
+
+    def other():
+        with benchmark.WallClock(path, beat=0.01):
+            done.wait(5)
+
+    thread = threading.Thread(target=other)
+    with benchmark.WallClock(path, beat=0.01):
+        thread.start()
+        time.sleep(0.3)
+        done.set()
+        thread.join()
+    record = json.loads(path.read_text())
+    assert len(record["invocations"]) == 2 and all(i["finished"] for i in record["invocations"])
+    assert all(i["end"] - i["start"] >= 0.25 for i in record["invocations"])

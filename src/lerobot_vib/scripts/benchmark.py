@@ -27,7 +27,9 @@ Conditions: normal; gaussian (noise std drawn from {0, 0.05, 0.1}); color (jitte
 on the simulated arm also camera_shake, unseen_block and occlusion (sim/perturbations.py).
 """
 
+import contextlib
 import dataclasses
+import fcntl
 import json
 import logging
 import os
@@ -36,6 +38,7 @@ import subprocess
 import sys
 import threading
 import time
+from collections.abc import Iterator
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -374,6 +377,12 @@ def train(network: str, cfg: BenchmarkConfig, seed: int) -> Path:
         check_given_checkpoint(Path(given), cfg)
         return Path(given)
     out = train_dir(cfg, network, seed)
+    # Another invocation on this output dir may be training the same network: wait for it, then reuse it.
+    with _locked(out.parent, f"{out.name}.lock"):
+        return _train(network, cfg, seed, out)
+
+
+def _train(network: str, cfg: BenchmarkConfig, seed: int, out: Path) -> Path:
     final = out / "checkpoints" / f"{cfg.steps:06d}" / "pretrained_model"
     if final.exists():
         return final
@@ -562,7 +571,7 @@ def run_benchmark(cfg: BenchmarkConfig, report_only: bool = False) -> dict | Non
 
 
 def _run_cells(cfg: BenchmarkConfig, clock: "WallClock") -> None:
-    _write_json(cfg.output_dir / "config.json", _config_record(cfg))
+    _save_config_record(cfg)
     if cfg.train_only:
         for seed in cfg.train_seeds:
             for network in cfg.networks():
@@ -594,11 +603,14 @@ def _run_seed(cfg: BenchmarkConfig, seed: int, todo: list[Cell], clock: "WallClo
     }
     choices_file = cfg.output_dir / "choices.json"
     for variant, condition, _, runtime in tqdm(todo, desc=f"cells, seed {seed}", unit="cell"):
+        if cell_path(cfg, variant, condition, seed, runtime).exists():
+            continue  # saved meanwhile by another invocation on other rows of the same output dir
         if condition != VALIDATION:
             choice = choose_runtime(cfg, variant, seed)
-            choices = json.loads(choices_file.read_text()) if choices_file.exists() else {}
-            choices.setdefault(variant, {})[str(seed)] = {**choice, "validation_seeds": cfg.validation_seeds()}
-            _write_json(choices_file, choices)
+            with _locked(cfg.output_dir):
+                choices = json.loads(choices_file.read_text()) if choices_file.exists() else {}
+                choices.setdefault(variant, {})[str(seed)] = {**choice, "validation_seeds": cfg.validation_seeds()}
+                _write_json(choices_file, choices)
             runtime_used = choice["runtime"]
         else:
             runtime_used = runtime
@@ -668,7 +680,9 @@ class WallClock:
     Each invocation appends its own record, {"start", "end", "finished"}, to `wall_time.json` when it starts,
     and keeps its "end" current: every `beat` seconds from a background thread, after every finished cell, and
     when it ends. An invocation killed at any point (SIGKILL included) thus counts up to its last beat, at
-    most `beat` seconds short. The total is the sum of (end - start) over the records.
+    most `beat` seconds short. Invocations may run side by side (say, one per group of rows): each rewrites
+    only its own record, under a file lock. The total is the sum of (end - start) over the records, so
+    invocations that overlap in time count once each: it is machine time spent, not elapsed time.
     """
 
     def __init__(self, path: Path, beat: float = 30.0):
@@ -691,10 +705,12 @@ class WallClock:
         return record["seconds_unrecorded"] + sum(i["end"] - i["start"] for i in record["invocations"])
 
     def __enter__(self) -> "WallClock":
-        self.record = self.load(self.path)
         now = time.time()
-        self.record["invocations"].append({"start": now, "end": now, "finished": False})
-        self._write()
+        self.mine = {"start": now, "end": now, "finished": False, "pid": os.getpid()}
+        with _locked(self.path.parent):
+            record = self.load(self.path)
+            record["invocations"].append(self.mine)
+            _write_json(self.path, record)
         self._thread = threading.Thread(target=self._beat, daemon=True)
         self._thread.start()
         return self
@@ -704,12 +720,17 @@ class WallClock:
             self.tick()
 
     def tick(self, finished: bool = False) -> None:
-        with self._lock:
-            self.record["invocations"][-1].update(end=time.time(), finished=finished)
-            self._write()
-
-    def _write(self) -> None:
-        _write_json(self.path, self.record)
+        with self._lock, _locked(self.path.parent):
+            record = self.load(self.path)
+            ours = [
+                i for i in record["invocations"] if (i["start"], i.get("pid")) == (self.mine["start"], self.mine["pid"])
+            ]
+            if not ours:  # the file was replaced meanwhile: put this invocation back
+                ours = [self.mine]
+                record["invocations"].append(self.mine)
+            ours[0].update(end=time.time(), finished=finished)
+            self.mine = ours[0]
+            _write_json(self.path, record)
 
     def __exit__(self, exc_type, exc, tb) -> None:
         self._stop.set()
@@ -726,6 +747,30 @@ def _portable(path: Path | str | None) -> str | None:
         return Path(path).resolve().relative_to(CONFIGS.parents[1]).as_posix()
     except ValueError:
         return str(path)
+
+
+@contextlib.contextmanager
+def _locked(folder: Path, name: str = ".lock") -> Iterator[None]:
+    """An exclusive lock on `<folder>/<name>` (flock; released if the process dies), for what invocations side by
+    side share: files they rewrite, and trainings."""
+    folder.mkdir(parents=True, exist_ok=True)
+    with (folder / name).open("a") as f:
+        fcntl.flock(f, fcntl.LOCK_EX)
+        try:
+            yield
+        finally:
+            fcntl.flock(f, fcntl.LOCK_UN)
+
+
+def _save_config_record(cfg: BenchmarkConfig) -> None:
+    """config.json: this invocation's settings, and every command run on this output dir so far."""
+    with _locked(cfg.output_dir):
+        path = cfg.output_dir / "config.json"
+        record = _config_record(cfg)
+        saved = json.loads(path.read_text()) if path.exists() else {}
+        commands = saved.get("commands") or ([saved["command"]] if "command" in saved else [])
+        record["commands"] = commands + [c for c in [record["command"]] if c not in commands]
+        _write_json(path, record)
 
 
 def _config_record(cfg: BenchmarkConfig) -> dict:

@@ -277,7 +277,7 @@ def _markdown(cfg, results: dict, plots: list[str]) -> str:
     lines = [
         "# lerobot-vib-benchmark",
         "",
-        f"- Command: `{c['command']}`",
+        *[f"- Command: `{command}`" for command in c.get("commands") or [c["command"]]],
         f"- Env: `{c['env_type']}`, dataset `{c['dataset']['repo_id']}`; profile `{cfg.profile}`, "
         f"{cfg.steps} training steps, device `{cfg.device}`",
         f"- Machine: {c['machine']['processor'] or c['machine']['platform']}, {c['machine']['cpus']} CPUs; "
