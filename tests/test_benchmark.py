@@ -235,6 +235,10 @@ def test_the_learning_curve_is_read_exactly_from_lerobot_trains_log_including_a_
     curve = benchmark_report.training_curve(log)
     assert [(p["step"], p["l1"], p["rate"]) for p in curve] == [(100, 0.65, 1.5), (1000, 0.2, 9.0), (1100, 0.18, 9.4)]
     assert benchmark_report.training_curve("no loss lines") == []
+    # LeRobot 0.6's resumed bar counts from its checkpoint: resumed at 1000 of 3000, its 1000th step is step 2000
+    resumed = line(1000, "1K", 0.2) + line(1000, "2K", 0.1).replace("1000/3000", "1000/2000")
+    curve = benchmark_report.training_curve(resumed, steps=3000)
+    assert [(p["step"], p["l1"]) for p in curve] == [(1000, 0.2), (2000, 0.1)]
 
 
 def test_act_with_eq6_and_u_equal_to_one_is_acts_own_ensembling():
@@ -433,3 +437,29 @@ def test_invocations_side_by_side_each_keep_their_own_wall_time_record(tmp_path)
     record = json.loads(path.read_text())
     assert len(record["invocations"]) == 2 and all(i["finished"] for i in record["invocations"])
     assert all(i["end"] - i["start"] >= 0.25 for i in record["invocations"])
+
+
+def test_invocations_side_by_side_train_a_network_once(tmp_path, monkeypatch):
+    """Two invocations that need the same network: the second waits for the first's training and reuses it."""
+    import subprocess
+    import threading
+    import time
+
+    cfg = BenchmarkConfig(dataset=DatasetConfig(repo_id="x"), env=ArmGraspEnvConfig(), output_dir=tmp_path, steps=2)
+    trainings = []
+
+    def fake_training(cmd, **kwargs):
+        trainings.append(cmd)
+        time.sleep(0.3)  # long enough for the other invocation to arrive meanwhile
+        out = Path(next(a for a in cmd if a.startswith("--output_dir=")).split("=", 1)[1])
+        (out / "checkpoints/000002/pretrained_model").mkdir(parents=True)
+        return subprocess.CompletedProcess(cmd, 0)
+
+    monkeypatch.setattr(benchmark.subprocess, "run", fake_training)
+    paths = []
+    threads = [threading.Thread(target=lambda: paths.append(benchmark.train("vib", cfg, 1000))) for _ in range(2)]
+    for t in threads:
+        t.start()
+    for t in threads:
+        t.join()
+    assert len(trainings) == 1 and len(paths) == 2 and paths[0] == paths[1]

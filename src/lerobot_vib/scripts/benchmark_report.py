@@ -125,40 +125,42 @@ def uncertainty(
     return result
 
 
-# LeRobot's training log: its progress bar (exact step) then the loss line, whose `step:` is rounded ("1K").
+# LeRobot's training log: its progress bar (steps done / steps to do) then the loss line, whose `step:` is
+# rounded ("1K").
 _LOSS_LINE = re.compile(
-    r"(\d+)/\d+ \[[^\]\n]*\]\s*INFO[^\n]*? step:(\S+) [^\n]*?\bl1_loss:([-+.\de]+)(?:[^\n]*?\brate:([-+.\de]+))?"
+    r"(\d+)/(\d+) \[[^\]\n]*\]\s*INFO[^\n]*? step:(\S+) [^\n]*?\bl1_loss:([-+.\de]+)(?:[^\n]*?\brate:([-+.\de]+))?"
 )
 
 
-def training_curve(log_text: str) -> list[dict]:
+def training_curve(log_text: str, steps: int | None = None) -> list[dict]:
     """(step, L1, rate) of every loss line in a `lerobot-train` log, sorted by step.
 
-    A resumed training appends to the log and repeats the steps after its checkpoint: the later value wins. A
-    progress-bar count that disagrees with the line's own rounded step (the bar not yet redrawn) is dropped
-    rather than guessed.
+    A resumed training appends to the log and repeats the steps after its checkpoint: the later value wins. Its
+    progress bar counts from the checkpoint to the end, so with the training's `steps` a bar of N steps to do
+    starts at step `steps - N`. A bar count that disagrees with the line's own rounded step (the bar not yet
+    redrawn) is dropped rather than guessed.
     """
     from lerobot.utils.utils import format_big_number
 
     points: dict[int, dict] = {}
     for m in _LOSS_LINE.finditer(log_text):
-        step = int(m.group(1))
-        if format_big_number(step) != m.group(2):
+        step = int(m.group(1)) + (steps - int(m.group(2)) if steps else 0)
+        if format_big_number(step) != m.group(3):
             continue
         points[step] = {
             "step": step,
-            "l1": float(m.group(3)),
-            "rate": None if m.group(4) is None else float(m.group(4)),
+            "l1": float(m.group(4)),
+            "rate": None if m.group(5) is None else float(m.group(5)),
         }
     return [points[k] for k in sorted(points)]
 
 
-def training_curves(out: Path) -> dict[str, list[dict]]:
+def training_curves(out: Path, steps: int | None = None) -> dict[str, list[dict]]:
     """The loss curves of the networks this benchmark trained (none for given checkpoints), keyed
     "<network> seed <s>"."""
     curves = {}
     for log in sorted((out / "train").glob("*/seed_*.log")):
-        curve = training_curve(log.read_text(errors="replace"))
+        curve = training_curve(log.read_text(errors="replace"), steps)
         if curve:
             curves[f"{log.parent.name} seed {log.stem.removeprefix('seed_')}"] = curve
     return curves
@@ -233,7 +235,7 @@ def write_report(cfg, cells: dict, wall_s: float) -> dict:
         "success": {},
         "validation": {},
         "uncertainty": {},
-        "training": training_curves(out),
+        "training": training_curves(out, cfg.steps),
     }
     for v in cfg.variants:
         for c in cfg.conditions:
