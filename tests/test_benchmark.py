@@ -126,7 +126,7 @@ def test_two_training_seeds_choose_each_run_time_on_validation_and_report_the_sp
         for seed in (1000, 2000):
             assert (out / f"train/{net}/seed_{seed}/checkpoints/000002/pretrained_model").exists()
             command = (out / f"train/{net}/seed_{seed}_command.txt").read_text()
-            assert f"--seed={seed}" in command
+            assert f"--seed={seed}" in command and command.startswith("lerobot-train ")  # as a user types it
     assert "--policy.type=act_like_vib" in (out / "train/act_like_vib/seed_1000_command.txt").read_text()
     saved = json.loads(
         (out / "train/act_like_vib/seed_1000/checkpoints/000002/pretrained_model/config.json").read_text()

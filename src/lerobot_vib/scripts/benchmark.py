@@ -395,7 +395,11 @@ def _train(network: str, cfg: BenchmarkConfig, seed: int, out: Path) -> Path:
     log = out.with_name(f"{out.name}.log")
     log.parent.mkdir(parents=True, exist_ok=True)
     with out.with_name(f"{out.name}_command.txt").open("a") as f:
-        f.write(" ".join(cmd) + "\n")
+        # as a user types it: the command's name, paths under the project relative to it
+        shown = [Path(cmd[0]).name] + [
+            f"{k}={_portable(v)}" if v.startswith("/") else a for a in cmd[1:] for k, _, v in [a.partition("=")]
+        ]
+        f.write(" ".join(shown) + "\n")
     logger.info("Training %s, seed %d (log: %s): %s", network, seed, log, " ".join(cmd))
     with log.open("a") as f:
         result = subprocess.run(cmd, stdout=f, stderr=subprocess.STDOUT, env={**os.environ})
