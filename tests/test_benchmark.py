@@ -463,3 +463,12 @@ def test_invocations_side_by_side_train_a_network_once(tmp_path, monkeypatch):
     for t in threads:
         t.join()
     assert len(trainings) == 1 and len(paths) == 2 and paths[0] == paths[1]
+
+
+def test_an_invocation_on_act_rows_alone_keeps_the_score_statistics_vib_rows_wrote(tmp_path):
+    """Invocations side by side on one seed each record their networks' scores; none erases another's."""
+    path = tmp_path / "scores" / "seed_1000.json"
+    benchmark._merge_json(path, {"vib": {"mean": 1.0}}, tmp_path)
+    benchmark._merge_json(path, {}, tmp_path)  # ACT's rows: no score
+    benchmark._merge_json(path, {"vib_beta0": {"mean": 2.0}}, tmp_path)
+    assert json.loads(path.read_text()) == {"vib": {"mean": 1.0}, "vib_beta0": {"mean": 2.0}}

@@ -517,6 +517,14 @@ def _write_json(path: Path, data: Any) -> None:
     tmp.replace(path)  # a cell file exists only when complete
 
 
+def _merge_json(path: Path, entries: dict, lock_folder: Path) -> None:
+    """Add `entries` to the JSON object at `path`: an invocation on other rows of the same output dir keeps the
+    entries it wrote (an invocation on ACT rows alone has no score to record, and must not erase VIB's)."""
+    with _locked(lock_folder):
+        data = json.loads(path.read_text()) if path.exists() else {}
+        _write_json(path, {**data, **entries})
+
+
 Cell = tuple[str, str, int, str | None]  # (variant, condition, training seed, run time of a validation cell)
 
 
@@ -596,7 +604,7 @@ def _run_seed(cfg: BenchmarkConfig, seed: int, todo: list[Cell], clock: "WallClo
         clock.tick()
     nets = {n: load_network(n, p, cfg.device) for n, p in paths.items()}
     rnd = fit_rnd(cfg, paths["vib"], nets["vib"], seed).to(cfg.device) if cfg.needs("rnd") else None
-    _write_json(cfg.output_dir / "scores" / f"seed_{seed}.json", score_statistics(nets, rnd))
+    _merge_json(cfg.output_dir / "scores" / f"seed_{seed}.json", score_statistics(nets, rnd), cfg.output_dir)
     processors = {
         n: make_pre_post_processors(
             policy.config,
