@@ -77,7 +77,7 @@ def train_variant(name: str, preset: dict, args, meta: LeRobotDatasetMetadata, o
     state_path, curve_path = out / "train_state.pt", out / "curve.csv"
     step, rows = 0, []
     if state_path.exists():  # resume an interrupted variant
-        state = torch.load(state_path, weights_only=False)
+        state = torch.load(state_path, weights_only=True)  # tensors and numbers only: no code runs
         policy.load_state_dict(state["policy"])
         optimizer.load_state_dict(state["optimizer"])
         torch.set_rng_state(state["rng"])

@@ -4,7 +4,9 @@ For each image size: training throughput (samples/s of forward + backward + Adam
 both policies with their default architectures, same chunk size, same batch), the latency of a
 `select_action` call that runs the network (batch 1, `n_action_steps=1` as with temporal ensembling), and
 the mean `select_action` time per step with ACT's action queue (`n_action_steps=chunk_size`): ACT runs the
-network once per chunk, VIB also encodes every step's observation for its uncertainty.
+network once per chunk, VIB also encodes every step's observation for its uncertainty. `vib_tokens` is VIB
+with `encoder=tokens` (the bottleneck on ACT's token memory, one token per trunk feature-map cell, so its cost
+grows with the image).
 Prints a Markdown table with VIB/ACT ratios and, with --output, writes it to a file.
 
     python benchmarks/bench_policy.py --sizes 120x160 480x640 --output benchmarks/results/cpu.md
@@ -43,7 +45,7 @@ def features(h: int, w: int) -> dict:
     )
 
 
-KINDS = ("act", "vib", "vib_u_at_plans")
+KINDS = ("act", "vib", "vib_u_at_plans", "vib_tokens")
 
 
 def make_policy(
@@ -54,6 +56,8 @@ def make_policy(
         return VIBPolicy(VIBConfig(**common, **features(h, w), **(vib or {}))).to(device)
     if kind == "vib_u_at_plans":  # uncertainty only when a chunk is planned: ACT's cost with the queue
         return VIBPolicy(VIBConfig(**common, **features(h, w), **(vib or {}), uncertainty_every_step=False)).to(device)
+    if kind == "vib_tokens":  # the bottleneck on ACT's token memory: one token per feature-map cell
+        return VIBPolicy(VIBConfig(**common, **features(h, w), **{**(vib or {}), "encoder": "tokens"})).to(device)
     return ACTPolicy(ACTConfig(**common, **features(h, w), **(act or {}))).to(device)
 
 
@@ -198,12 +202,17 @@ def main() -> None:
                 f"| {size} | {kind} | {r['params_m']:.1f} | {r['samples_per_s']:.2f} | {r['latency_ms']:.1f} "
                 f"| {r['queue_ms']:.1f} |"
             )
-        a, v, p = res["act"], res["vib"], res["vib_u_at_plans"]
+        a, v, p, t = res["act"], res["vib"], res["vib_u_at_plans"], res["vib_tokens"]
         lines.append(
             f"| {size} | **VIB / ACT** | {v['params_m'] / a['params_m']:.2f} | "
             f"**{v['samples_per_s'] / a['samples_per_s']:.2f}x** | "
             f"**{v['latency_ms'] / a['latency_ms']:.2f}x** | **{v['queue_ms'] / a['queue_ms']:.2f}x** "
             f"(u at plans only: **{p['queue_ms'] / a['queue_ms']:.2f}x**) |"
+        )
+        lines.append(
+            f"| {size} | **VIB tokens / ACT** | {t['params_m'] / a['params_m']:.2f} | "
+            f"**{t['samples_per_s'] / a['samples_per_s']:.2f}x** | "
+            f"**{t['latency_ms'] / a['latency_ms']:.2f}x** | **{t['queue_ms'] / a['queue_ms']:.2f}x** |"
         )
     header = (
         f"Machine: {machine(args.device)}; torch {torch.__version__}; device {args.device}; "

@@ -72,6 +72,7 @@ CONDITIONS: dict[str, dict] = {
 }
 DIM_FACTOR, FROZEN_FROM = 0.45, 20
 SPLIT_SEEDS = {"calibration": 600000, "validation": 400000, "test": 500000}
+LENGTHS = "__lengths"  # beside a per-episode key in a cell file: each episode's number of values
 ALPHA = 0.1
 CATCH_WITHIN = 5
 
@@ -167,7 +168,7 @@ def run_split(args, path: Path, split: str, conditions: list[str], n_episodes: d
         target.parent.mkdir(parents=True, exist_ok=True)
         flat = {"seeds": np.asarray(seeds), "success": np.asarray([e["success"] for e in episodes])}
         for key in (*SCORES, "mean_term", "var_term", "rate_state_path"):
-            flat[key] = np.asarray([e[key] for e in episodes], dtype=object)
+            flat.update(_ragged_to_arrays(key, [e[key] for e in episodes]))
         flat["wall_s"] = np.asarray(time.time() - start)
         tmp = target.with_suffix(".tmp.npz")
         np.savez(tmp, **flat)
@@ -213,15 +214,45 @@ def derived_dataset(dataset: dict) -> dict:
     return out
 
 
+def _ragged_to_arrays(key: str, per_episode: list) -> dict[str, np.ndarray]:
+    """Episodes of different lengths as plain arrays (values end to end, and each episode's length), so that
+    reading them back never needs pickle: a pickled array in a file can run code when it is loaded."""
+    values = [np.asarray(v, dtype=np.float64).reshape(-1) for v in per_episode]
+    return {
+        key: np.concatenate(values) if values else np.zeros(0),
+        f"{key}{LENGTHS}": np.asarray([len(v) for v in values], dtype=np.int64),
+    }
+
+
+def _read_cell(path: Path) -> dict:
+    try:
+        data = np.load(path, allow_pickle=False)
+        raw = {k: data[k] for k in data.files}
+    except ValueError as e:  # an object array: written by an earlier version of this script
+        raise SystemExit(
+            f"{path} stores arrays that only pickle can read, which this script no longer loads (a crafted file "
+            f"could run code). Delete it and rerun: the condition is evaluated again. ({e})"
+        ) from None
+    cell = {}
+    for key, value in raw.items():
+        if key.endswith(LENGTHS):
+            continue
+        if f"{key}{LENGTHS}" in raw:
+            lengths = raw[f"{key}{LENGTHS}"]
+            cell[key] = np.split(value, np.cumsum(lengths)[:-1]) if len(lengths) else []
+        else:
+            cell[key] = value
+    return cell
+
+
 def load_split(out: Path, split: str, dataset: dict | None = None) -> dict[str, dict]:
     cells = {}
     for f in sorted((out / split).glob("*.npz")):
         if f.name.endswith(".tmp.npz"):
             continue
-        data = np.load(f, allow_pickle=True)
-        cells[f.stem] = {k: data[k] for k in data.files}
-        if "low_image_rate" not in cells[f.stem]:  # recorded before the score had a name: the same value
-            cells[f.stem]["low_image_rate"] = [1.0 / np.asarray(t, dtype=np.float64) for t in data["image_rate"]]
+        cell = cells[f.stem] = _read_cell(f)
+        if "low_image_rate" not in cell:  # recorded before the score had a name: the same value
+            cell["low_image_rate"] = [1.0 / np.asarray(t, dtype=np.float64) for t in cell["image_rate"]]
         if dataset is not None:
             means = dataset_means(dataset)
             for name, derive in DERIVED.items():

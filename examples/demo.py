@@ -144,7 +144,7 @@ def main() -> None:
     u_eval = json.loads((eval_dir / "uncertainty_info.json").read_text())["overall"]
     band = json.loads((ckpt / "config.json").read_text())["calibration"]["gamma_band"]
     trace = json.loads((trace_dir / "summary.json").read_text())
-    stops = trace["stop_intervals"] or "none"
+    stops = "; ".join(f"steps {s['first_step']}-{s['last_step']}, ended: {s['ended']}" for s in trace["stops"])
     stages = ", ".join(f"{name} {minutes:.1f}" for name, minutes in TIMES.items())
     print(
         f"\nDone in {(time.time() - start) / 60:.1f} min (this run's commands, in minutes: {stages}).\n"
@@ -155,7 +155,7 @@ def main() -> None:
         f"{min(band):.2f}-{max(band):.2f} over the episode (at most {ALPHA:.0%} of clean rollouts stop). "
         f"Videos: {Path(overall['video_paths'][0]).parent}\n"
         f"Occluded rollout (board over steps {OCCLUDE}, stop on): mean u {trace['mean_u_clean']:.2f} on clean "
-        f"steps, {trace['mean_u_occluded']:.2f} under the board; stopped at steps {stops}; "
+        f"steps, {trace['mean_u_occluded']:.2f} under the board; stops: {stops or 'none'}; "
         f"{'grasped' if trace.get('success') else 'not grasped'}. Picture: {trace_dir / 'trace.png'}\n"
         f"\nNext: train the full preset (about 41 min on 2 cores, docs/arm.md):\n"
         f"  lerobot-train --config_path={PRESET.relative_to(ROOT)} --dataset.root={data} "

@@ -3,8 +3,11 @@
 
 Writes, under --out:
   trace.csv    one row per step: step, rate, u, gamma, stopped, occluded, reward
-  summary.json the run's settings, success, stop intervals, and mean u on clean vs occluded steps
-  trace.png    u over time with the threshold gamma, stop intervals and occlusion shaded, and key frames
+  summary.json the run's settings, the threshold in force and where it comes from, success, every stop and
+               what ended it (the scene clearing, u falling while the board was in view, the halt), and mean
+               u on clean vs occluded steps
+  trace.png    u over time with the threshold in force at each step, stop intervals and occlusion shaded,
+               and key frames
                (needs matplotlib: pip install 'lerobot_policy_vib[examples]')
 
 An occlusion can be placed on a range of steps, as in the paper's Fig. 3c, and the safety stop switched on
@@ -66,6 +69,24 @@ def stop_intervals(stopped: list[bool]) -> list[tuple[int, int]]:
     return intervals
 
 
+def what_ended(first: int, last: int, rows: list[dict], occluded_steps: set[int]) -> dict:
+    """A stop from step `first` to `last` (both stopped) and what ended it, in words."""
+    if rows[last]["halted"]:
+        ended = "halted: held safety.max_hold_steps steps; only policy.resume() ends it"
+    elif last == len(rows) - 1:
+        ended = "still stopped when the episode ended"
+    elif occluded_steps and min(occluded_steps) <= first <= max(occluded_steps):
+        cleared = last + 1 > max(occluded_steps)
+        ended = (
+            "the scene cleared: u fell below the threshold after the board left"
+            if cleared
+            else "u fell below the threshold while the board was still in view"
+        )
+    else:
+        ended = "u fell below the threshold"
+    return {"first_step": first, "last_step": last, "ended": ended}
+
+
 def rollout(args: argparse.Namespace) -> dict:
     overrides = []
     if args.safety:
@@ -123,6 +144,7 @@ def rollout(args: argparse.Namespace) -> dict:
 
     u = np.array([r["u"] for r in rows])
     occl = np.array([r["occluded"] for r in rows])
+    intervals = stop_intervals([r["stopped"] for r in rows])
     summary = {
         "policy": str(args.policy_path),
         "task": args.task,
@@ -130,10 +152,13 @@ def rollout(args: argparse.Namespace) -> dict:
         "steps": len(rows),
         "occluded_steps": [min(occluded_steps), max(occluded_steps)] if occluded_steps else None,
         "safety_enabled": policy.config.safety.enabled,
-        "gamma": rows[0]["gamma"],
+        "score": policy.last_step.score,
+        "threshold": policy.threshold_in_force(step=0)["source"],
+        "gamma": rows[0]["gamma"],  # at the first step; trace.csv has the threshold in force at every step
         "success": success,
         "max_reward": max_reward,
-        "stop_intervals": stop_intervals([r["stopped"] for r in rows]),
+        "stop_intervals": intervals,
+        "stops": [what_ended(a, b, rows, occluded_steps) for a, b in intervals],
         "mean_u_clean": float(u[~occl].mean()) if (~occl).any() else None,
         "mean_u_occluded": float(u[occl].mean()) if occl.any() else None,
     }
@@ -161,8 +186,9 @@ def plot(rows: list[dict], summary: dict, frames: dict[int, np.ndarray], path: P
     fig = plt.figure(figsize=(11, 5.5))
     grid = fig.add_gridspec(2, max(len(keys), 1), height_ratios=[2.2, 1])
     ax = fig.add_subplot(grid[0, :])
-    ax.plot(steps, [r["u"] for r in rows], color="tab:blue", lw=1.5, label="u = R / R_bar")
-    ax.axhline(summary["gamma"], color="tab:red", ls="--", lw=1.2, label=f"gamma = {summary['gamma']:.2f}")
+    ax.plot(steps, [r["u"] for r in rows], color="tab:blue", lw=1.5, label=f"u = {summary['score']} / its mean")
+    # the threshold in force at each step: a time band moves it (and stands still while the arm holds)
+    ax.step(steps, [r["gamma"] for r in rows], where="post", color="tab:red", ls="--", lw=1.2, label="threshold")
     if summary["occluded_steps"]:
         a, b = summary["occluded_steps"]
         ax.axvspan(a, b + 1, color="grey", alpha=0.2, label="occluded")

@@ -4,6 +4,8 @@ from __future__ import annotations
 
 import csv
 import json
+import os
+import subprocess
 import sys
 from pathlib import Path
 
@@ -301,7 +303,16 @@ def arm_checkpoint(arm_recording, tmp_path_factory):
     return out / "checkpoints" / "last" / "pretrained_model"
 
 
-def test_lerobot_eval_runs_on_the_arm_with_an_occluder(arm_recording, arm_checkpoint, tmp_path):
+@pytest.mark.parametrize(
+    "flags",
+    [
+        ["--env.perturbation.occlusion=true", "--eval.use_async_envs=false"],
+        # LeRobot's default where there are several cores: it asks each subprocess env for `task`, which the
+        # arm once lacked, and the workers died
+        ["--eval.use_async_envs=true"],
+    ],
+)
+def test_lerobot_eval_runs_on_the_arm(flags, arm_recording, arm_checkpoint, tmp_path):
     run(
         [
             str(BIN / "lerobot-eval"),
@@ -309,16 +320,46 @@ def test_lerobot_eval_runs_on_the_arm_with_an_occluder(arm_recording, arm_checkp
             "--policy.device=cpu",
             "--env.type=vib_arm",
             f"--env.dataset_root={arm_recording}",
-            "--env.perturbation.occlusion=true",
-            "--env.episode_length=6",
+            "--env.episode_length=4",
             "--eval.n_episodes=2",
             "--eval.batch_size=2",
-            "--eval.use_async_envs=false",
+            *flags,
             f"--output_dir={tmp_path / 'eval'}",
         ]
     )
     info = json.loads((tmp_path / "eval" / "eval_info.json").read_text())
     assert info["overall"]["n_episodes"] == 2
+
+
+def test_lerobot_vib_eval_takes_the_training_recordings_settings_and_records_its_env(
+    arm_recording, arm_checkpoint, tmp_path
+):
+    """Without --env.dataset_root the env once ran at its defaults (another workspace) without a word."""
+    out = tmp_path / "eval"
+    log = run(
+        [
+            str(BIN / "lerobot-vib-eval"),
+            f"--policy.path={arm_checkpoint}",
+            "--policy.device=cpu",
+            "--env.type=vib_arm",
+            "--env.episode_length=3",
+            "--eval.n_episodes=1",
+            "--eval.batch_size=1",
+            f"--output_dir={out}",
+        ]
+    )
+    assert "takes the settings of the policy's training recording" in log
+    env = json.loads((out / "uncertainty_info.json").read_text())["env"]
+    assert (env["observation_height"], env["observation_width"], env["cameras"]) == (48, 64, ["scene"])
+    assert env["dataset_root"] == str(arm_recording) and env["episode_length"] == 3
+    assert env["perturbation"]["occlusion"] is False
+    proc = subprocess.run(
+        [str(BIN / "lerobot-vib-eval"), f"--policy.path={arm_checkpoint}", "--env.type=vib_arm",
+         "--env.workspace=near", f"--output_dir={tmp_path / 'near'}"],
+        capture_output=True, text=True, timeout=300, env={**os.environ, "HF_HUB_OFFLINE": "1"},
+    )  # fmt: skip
+    assert proc.returncode != 0 and "Traceback" not in proc.stderr, proc.stderr[-3000:]
+    assert "workspace=near contradicts the recording" in proc.stderr.strip().splitlines()[-1]
 
 
 def test_rollout_example_traces_the_arm_with_the_occluder_in_the_scene(arm_checkpoint, tmp_path):

@@ -192,6 +192,28 @@ def test_a_run_that_would_choose_on_test_seeds_is_refused_before_any_work(arm_da
         tiny_config(arm_data, tmp_path / "f", variants=["comparison"], runtimes=["eq6:0.3"])
 
 
+def test_a_given_checkpoint_changed_in_place_between_invocations_is_refused_by_name(arm_data, tmp_path):
+    """Recalibrated in place, it once gave new cells u over another R_bar than the saved ones, silently."""
+    checkpoint = tmp_path / "ckpt"
+    checkpoint.mkdir()
+    config = {"type": "vib", "calibration": {"rate_mean": 0.1665}}
+    (checkpoint / "config.json").write_text(json.dumps(config))
+    (checkpoint / "model.safetensors").write_bytes(b"weights")
+    cfg = tiny_config(arm_data, tmp_path / "out", variants=["vib"], vib_checkpoint=checkpoint)
+    cfg.output_dir.mkdir()
+    benchmark._save_config_record(cfg)
+    benchmark.check_resumable(cfg)  # the same checkpoint resumes
+    config["calibration"]["rate_mean"] = 0.1605
+    (checkpoint / "config.json").write_text(json.dumps(config))
+    with pytest.raises(VIBConfigError, match=r"--vib_checkpoint=.*ckpt is not the checkpoint .*config or weights"):
+        benchmark.check_resumable(cfg)
+    config["calibration"]["rate_mean"] = 0.1665
+    (checkpoint / "config.json").write_text(json.dumps(config))
+    (checkpoint / "model.safetensors").write_bytes(b"retrained")
+    with pytest.raises(VIBConfigError, match="changed since"):
+        benchmark.check_resumable(cfg)
+
+
 def test_the_command_line_refuses_scene_conditions_off_the_arm_and_unknown_rows(tmp_path):
     with pytest.raises(VIBConfigError, match="simulated arm"):
         BenchmarkConfig(
@@ -381,6 +403,21 @@ def test_wall_time_counts_every_invocation_a_killed_one_included(tmp_path):
     record = json.loads(path.read_text())
     assert [i["finished"] for i in record["invocations"]] == [False, True]
     assert benchmark.WallClock.total(path) >= killed + 0.3
+
+
+def test_the_token_comparison_trains_the_token_network_beside_the_same_act_rows_and_the_pooled_preset(tmp_path):
+    cfg = BenchmarkConfig(
+        dataset=DatasetConfig(repo_id="x"), env=ArmGraspEnvConfig(), output_dir=tmp_path, variants=["tokens"]
+    )
+    assert cfg.variants == ["act_chosen", "act_like_vib", "vib_tokens_beta0", "vib_tokens", "vib_chosen"]
+    assert set(cfg.networks()) == {"act", "act_like_vib", "vib_tokens_beta0", "vib_tokens", "vib"}
+    tokens = benchmark.train_command("vib_tokens", cfg, tmp_path / "t", seed=1000)
+    beta0 = benchmark.train_command("vib_tokens_beta0", cfg, tmp_path / "t0", seed=1000)
+    pooled = benchmark.train_command("vib", cfg, tmp_path / "p", seed=1000)
+    assert "--policy.encoder=tokens" in tokens and "--policy.beta=0" not in tokens
+    assert "--policy.encoder=tokens" in beta0 and "--policy.beta=0" in beta0
+    assert not any("encoder" in a for a in pooled)
+    assert cfg.episodes("vib_tokens", "normal") == cfg.n_episodes
 
 
 def test_comparison_rows_train_their_own_networks_and_run_the_run_time_they_are_given(tmp_path):

@@ -279,13 +279,52 @@ def test_calibrate_never_writes_into_a_folder_it_did_not_make(tiny_checkpoint, t
     assert sorted(p.name for p in target.iterdir()) == ["notes.txt"]
 
 
-def _rollouts(u_max: list[float], rate_mean: float, safety: bool = False) -> dict:
+CLEAN_ARM = {"type": "vib_arm", "task": "ArmGrasp-v0", "workspace": "near", "perturbation": {"noise_std": [0.0]}}
+
+
+def _rollouts(u_max: list[float], rate_mean: float, safety: bool = False, env: dict | None = CLEAN_ARM) -> dict:
     """An uncertainty_info.json as lerobot-vib-eval writes it (the fields calibration reads)."""
     return {
         "rate_mean": rate_mean,
         "safety_enabled": safety,
         "per_episode": [{"seed": 100 + i, "u_max": u} for i, u in enumerate(u_max)],
+        **({"env": env} if env is not None else {}),
     }
+
+
+def _perturbed(**perturbation) -> dict:
+    return {**CLEAN_ARM, "perturbation": {"noise_std": [0.0], **perturbation}}
+
+
+@pytest.mark.parametrize(
+    ("env", "recording", "message"),
+    [
+        (_perturbed(black_images=True), None, r"the env was perturbed \(black_images=true\)"),
+        (_perturbed(noise_std=[0.0, 0.05]), None, r"noise_std=\[0.0, 0.05\]"),
+        (_perturbed(occlusion=True, camera_shake=0.02), None, r"camera_shake=0.02, occlusion=true"),
+        ({**CLEAN_ARM, "workspace": "wide"}, {"task": "grasp_block", "workspace": "near"}, "workspace wide"),
+        ({**CLEAN_ARM, "type": "aloha_fast"}, {"task": "grasp_block", "workspace": "near"}, "env type aloha_fast"),
+        ({**CLEAN_ARM, "cameras": ["wrist"]}, None, r"cameras \['wrist'\] \(the policy reads \['top'\]\)"),
+        ({**CLEAN_ARM, "observation_height": 96, "observation_width": 128}, None, "images of 96x128"),
+        (None, None, "does not record the env"),
+    ],
+)
+def test_gamma_is_set_only_on_clean_rollouts_in_the_env_the_policy_was_trained_for(env, recording, message):
+    """Black-image rollouts once set gamma = 1.057 and were then called clean rollouts on the model card."""
+    from helpers import make_config
+    from lerobot_vib.configuration_vib import CalibrationConfig, VIBConfigError
+    from lerobot_vib.scripts.calibrate import gamma_from_rollouts
+
+    calibration = CalibrationConfig(rate_mean=2.0, rate_std=0.5)
+    policy = make_config(cameras={"top": (3, 32, 32)})
+    with pytest.raises(VIBConfigError, match=message):
+        gamma_from_rollouts(
+            calibration, _rollouts([1.0] * 10, 2.0, env=env), 0.1, "r.json", policy_config=policy, recording=recording
+        )
+    clean = gamma_from_rollouts(
+        calibration, _rollouts([1.0] * 10, 2.0), 0.1, "r.json", policy_config=policy, recording=recording
+    )
+    assert clean.gamma_method == "conformal_rollouts"  # the same rollouts, clean and in the right env, are taken
 
 
 def test_gamma_from_clean_rollouts_is_the_conformal_threshold_on_their_episode_maxima():
@@ -401,5 +440,11 @@ def test_the_model_card_states_the_data_score_r_bar_gamma_its_method_and_the_mea
     assert "Score: `rate`" in text and "R_bar (the rate's mean) = 2" in text
     assert "gamma = 10 on `rate`, set by split-conformal on the maximum u of 10 clean rollouts at alpha = 0.1" in text
     assert "Measured: 7/10 clean rollouts succeeded (`lerobot-vib-eval --policy.path=ckpt" in text
+    # LeRobot's Evaluation section no longer says there is none, and the Hub's evaluation results hold it
+    assert "No evaluation results have been provided" not in text
+    assert "| clean rollouts in simulation (lerobot-vib-eval, seeds 100-109) | 10 | 7 | 70% |" in text
+    card = policy.generate_model_card("local/arm", "vib", None, None)
+    result = card.data.eval_results[0]
+    assert (result.metric_type, result.metric_value, result.dataset_type) == ("success_rate", 0.7, "local/arm")
     bare = VIBPolicy(make_config(uncertainty_score="rate")).generate_model_card("local/arm", "vib", None, None).text
     assert "Not calibrated" in bare and "no evaluation is recorded" in bare

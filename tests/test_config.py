@@ -57,7 +57,7 @@ def test_bad_safety_settings(safety, message):
 def test_home_pose_must_match_the_action_size():
     config = make_config(action_dim=3)
     config.safety.home_pose = [0.0, 0.0]
-    with pytest.raises(ValueError, match="home_pose"):
+    with pytest.raises(VIBConfigError, match="home_pose"):
         config.validate_features()
 
 

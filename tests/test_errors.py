@@ -226,5 +226,5 @@ def test_a_truncated_checkpoint_names_the_file_and_the_cause(tmp_path):
     policy.save_pretrained(tmp_path)
     weights = tmp_path / "model.safetensors"
     weights.write_bytes(weights.read_bytes()[: weights.stat().st_size // 3])
-    with pytest.raises(RuntimeError, match=r"model\.safetensors: the file is damaged or only partly downloaded"):
+    with pytest.raises(VIBConfigError, match=r"model\.safetensors: the file is damaged or only partly downloaded"):
         VIBPolicy.from_pretrained(tmp_path)

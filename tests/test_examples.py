@@ -36,3 +36,19 @@ def test_rollout_uncertainty_writes_a_trace_a_summary_and_a_plot(tiny_checkpoint
     assert summary["safety_enabled"] and summary["stop_intervals"] == []  # gamma = 1e6: never above
     assert summary["mean_u_occluded"] is not None
     assert (out / "trace.png").stat().st_size > 10_000
+
+
+def test_the_trace_says_what_ended_each_stop():
+    import importlib.util
+
+    path = Path(__file__).parents[1] / "examples" / "rollout_uncertainty.py"
+    spec = importlib.util.spec_from_file_location("rollout_uncertainty", path)
+    example = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(example)
+    rows = [{"halted": False} for _ in range(100)]
+    board = set(range(30, 60))
+    assert "the scene cleared" in example.what_ended(32, 65, rows, board)["ended"]
+    assert "still in view" in example.what_ended(32, 56, rows, board)["ended"]
+    assert "episode ended" in example.what_ended(32, 99, rows, board)["ended"]
+    rows[80]["halted"] = True
+    assert example.what_ended(32, 80, rows, board)["ended"].startswith("halted")

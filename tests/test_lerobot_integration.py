@@ -126,7 +126,15 @@ def test_save_then_from_pretrained_gives_identical_actions(tmp_path):
     assert not torch.equal(VIBPolicy(config).eval().predict_action_chunk(obs), expected)  # the test can fail
 
 
-def test_lerobot_eval_runs_an_aloha_episode(trained, tmp_path):
+@pytest.mark.parametrize(
+    "flags",
+    [
+        ["--env.type=aloha", "--eval.n_episodes=1", "--eval.batch_size=1"],
+        # a batch of two subprocess envs, as LeRobot's eval defaults to on a machine with several cores
+        ["--env.type=aloha_fast", "--eval.n_episodes=2", "--eval.batch_size=2", "--eval.use_async_envs=true"],
+    ],
+)
+def test_lerobot_eval_runs_aloha_episodes(flags, trained, tmp_path):
     ckpt, _ = trained
     out = tmp_path / "eval"
     run(
@@ -134,16 +142,14 @@ def test_lerobot_eval_runs_an_aloha_episode(trained, tmp_path):
             str(BIN / "lerobot-eval"),
             f"--policy.path={ckpt}",
             "--policy.device=cpu",
-            "--env.type=aloha",
             "--env.task=AlohaTransferCube-v0",
-            "--env.episode_length=6",
-            "--eval.n_episodes=1",
-            "--eval.batch_size=1",
+            "--env.episode_length=3",
+            *flags,
             f"--output_dir={out}",
         ]
     )
     info = json.loads((out / "eval_info.json").read_text())
-    assert info["overall"]["n_episodes"] == 1
+    assert info["overall"]["n_episodes"] == int(flags[1].split("=")[1])
 
 
 def test_two_process_ddp_training(tiny_dataset_root, tmp_path):
@@ -166,16 +172,16 @@ def test_two_process_ddp_training(tiny_dataset_root, tmp_path):
     assert (out_dir / "checkpoints" / "last" / "pretrained_model" / "model.safetensors").exists()
 
 
-def test_hub_push_uploads_weights_config_processors_and_a_model_card(trained, monkeypatch):
-    """Offline: intercept the Hub client and check the folder LeRobot would upload."""
+def fake_hub(monkeypatch, repo_id: str) -> list[dict[str, str]]:
+    """Offline: the Hub client intercepted; returns the folders it was asked to upload, file name -> text."""
     from huggingface_hub import HfApi, ModelCard
-    from lerobot.configs.train import TrainPipelineConfig
 
-    ckpt, _ = trained
     uploads: list[dict[str, str]] = []
 
     class Repo:
-        repo_id = "user/vib_test"
+        pass
+
+    Repo.repo_id = repo_id
 
     def fake_upload_folder(self, *, folder_path, **kwargs):
         files = {p.name: p for p in Path(folder_path).iterdir() if p.is_file()}
@@ -183,13 +189,22 @@ def test_hub_push_uploads_weights_config_processors_and_a_model_card(trained, mo
 
         class Info:
             class repo_url:  # noqa: N801
-                url = "https://huggingface.co/user/vib_test"
+                url = f"https://huggingface.co/{repo_id}"
 
         return Info()
 
     monkeypatch.setattr(HfApi, "create_repo", lambda self, *a, **k: Repo())
     monkeypatch.setattr(HfApi, "upload_folder", fake_upload_folder)
     monkeypatch.setattr(ModelCard, "validate", lambda self, *a, **k: None)  # validation is an online call
+    return uploads
+
+
+def test_hub_push_uploads_weights_config_processors_and_a_model_card(trained, monkeypatch):
+    """Offline: intercept the Hub client and check the folder LeRobot would upload."""
+    from lerobot.configs.train import TrainPipelineConfig
+
+    ckpt, _ = trained
+    uploads = fake_hub(monkeypatch, "user/vib_test")
 
     policy = VIBPolicy.from_pretrained(ckpt)
     policy.config.repo_id = "user/vib_test"
@@ -203,6 +218,42 @@ def test_hub_push_uploads_weights_config_processors_and_a_model_card(trained, mo
     assert {"model.safetensors", "config.json", "train_config.json", "README.md"} <= set(model_files)
     assert json.loads(model_files["config.json"])["type"] == "vib"
     card = model_files["README.md"]
-    assert "vib" in card and "pip install lerobot_policy_vib" in card and "Information Bottleneck" in card
+    assert "vib" in card and "not on PyPI" in card and "Information Bottleneck" in card
+    assert "pip install lerobot_policy_vib" not in card  # no registry has it
     processor_files = set(uploads[1]) | set(uploads[2])
     assert {"policy_preprocessor.json", "policy_postprocessor.json"} <= processor_files
+
+
+def test_a_calibrated_checkpoint_is_pushed_with_its_card_and_measured_success(trained, monkeypatch, tmp_path):
+    """lerobot-train pushes the uncalibrated model; `lerobot-vib-calibrate --push_to_hub=true` the calibrated one."""
+    import shutil
+
+    from lerobot_vib.scripts.calibrate import push_calibrated
+
+    ckpt = tmp_path / "pretrained_model_calibrated"
+    shutil.copytree(trained[0], ckpt)
+    config = json.loads((ckpt / "config.json").read_text())
+    config["calibration"].update(
+        rate_mean=2.0, rate_std=0.5, gamma=1.3, gamma_method="conformal_rollouts", conformal_alpha=0.1,
+        rollout_seeds=list(range(500, 520)), rollout_successes=15,
+    )  # fmt: skip
+    (ckpt / "config.json").write_text(json.dumps(config))
+    uploads = fake_hub(monkeypatch, "user/vib_calibrated")
+    push_calibrated(ckpt, "user/vib_calibrated")
+    model = uploads[0]
+    assert json.loads(model["config.json"])["calibration"]["gamma"] == 1.3
+    card = model["README.md"]
+    assert "| 20 | 15 | 75% |" in card and "success_rate" in card and "Measured: 15/20 clean rollouts" in card
+    assert {"policy_preprocessor.json", "policy_postprocessor.json"} <= set(uploads[1]) | set(uploads[2])
+
+
+def test_calibrate_refuses_to_push_offline_before_any_work(tmp_path):
+    import subprocess
+
+    proc = subprocess.run(
+        [str(BIN / "lerobot-vib-calibrate"), f"--policy.path={tmp_path}", "--rollouts=x.json",
+         "--conformal_alpha=0.1", "--push_to_hub=true", "--repo_id=user/name"],
+        capture_output=True, text=True, timeout=300, env={**__import__("os").environ, "HF_HUB_OFFLINE": "1"},
+    )  # fmt: skip
+    assert proc.returncode != 0 and "Traceback" not in proc.stderr
+    assert "the Hub is offline" in proc.stderr.strip().splitlines()[-1]

@@ -149,3 +149,19 @@ def _rate_after_deviation(floor, deviation: float) -> float:
 def test_a_never_moved_joint_cannot_blow_up_the_rate():
     assert _rate_after_deviation(0.1, 0.01) < 1.5  # 0.6 degrees: an ordinary rollout wobble
     assert _rate_after_deviation(None, 0.01) > 10 * _rate_after_deviation(0.1, 0.01)  # the test can fail
+
+
+@pytest.mark.parametrize(
+    ("scope", "state_floored", "action_floored"),
+    [("all", True, True), ("state", True, False), ("action", False, True)],
+)
+def test_the_floor_applies_to_the_features_its_scope_names(scope, state_floored, action_floored):
+    """The floor on the state only keeps the action's twitch of the never-moved joint, and the other way round."""
+    from lerobot_vib.processor_vib import vib_dataset_stats
+
+    config = make_config(state_dim=7, action_dim=7, normalization_floor_features=scope)
+    stats = vib_dataset_stats(config, arm_stats())
+    assert (float(stats[OBS_STATE]["std"][3]) > ARM_STATE_STD[3]) == state_floored
+    assert (float(stats[ACTION]["std"][3]) > ARM_STATE_STD[3]) == action_floored
+    with pytest.raises(Exception, match="normalization_floor_features"):
+        make_config(normalization_floor_features="images")

@@ -249,6 +249,66 @@ def test_an_edited_info_json_is_refused_by_name_not_rewritten(tmp_path):
     assert json.loads((root / "meta/info.json").read_text()) == edited
 
 
+def test_an_edited_stats_json_is_refused_by_name_not_rewritten(tmp_path):
+    import json
+
+    root = tmp_path / "ds"
+    record_scripted_dataset(root, "local/k", SETTINGS, num_episodes=1, progress=False)
+    stats = json.loads((root / "meta/stats.json").read_text())
+    stats["observation.state"]["std"] = [max(s, 0.5) for s in stats["observation.state"]["std"]]  # a floor
+    (root / "meta/stats.json").write_text(json.dumps(stats, indent=4))
+    with pytest.raises(RecordingError, match=r"meta/stats\.json was edited.*changed `observation\.state`.*Nothing"):
+        record_scripted_dataset(root, "local/k", SETTINGS, num_episodes=2, resume=True, progress=False)
+    assert json.loads((root / "meta/stats.json").read_text()) == stats
+
+
+def _png(path: Path) -> Path:
+    from PIL import Image
+
+    path.parent.mkdir(parents=True, exist_ok=True)
+    Image.fromarray(np.full((4, 4, 3), 7, dtype=np.uint8)).save(path)
+    return path
+
+
+def test_resume_deletes_only_the_unfinished_episodes_frames_and_names_the_others(tmp_path, caplog):
+    import logging
+
+    root = tmp_path / "ds"
+    record_scripted_dataset(root, "local/k", SETTINGS, num_episodes=1, progress=False)
+    frames = root / "images" / "observation.images.top"
+    unfinished = _png(frames / "episode-000001" / "frame-000000.png")  # as an interrupted episode 1 leaves it
+    other = _png(frames / "episode-000000" / "frame-000003.png")  # an episode already saved: not ours to delete
+    beyond = _png(frames / "episode-000007" / "frame-000000.png")  # an episode this run will not record
+    with caplog.at_level(logging.INFO, logger="lerobot_vib"):
+        record_scripted_dataset(root, "local/k", SETTINGS, num_episodes=2, resume=True, progress=False)
+    assert not unfinished.exists() and other.is_file() and beyond.is_file()
+    assert sorted(episode_arrays(root)) == [0, 1]
+    assert "Dropped the unfinished episode 1 of an interrupted run (1 files)" in caplog.text
+    assert "Kept 2 files" in caplog.text and "episode-000000/frame-000003.png" in caplog.text
+
+
+def test_resume_with_nothing_interrupted_drops_nothing_and_says_nothing_of_it(tmp_path, caplog):
+    import logging
+
+    root = tmp_path / "ds"
+    record_scripted_dataset(root, "local/k", SETTINGS, num_episodes=1, progress=False)
+    other = _png(root / "images" / "observation.images.top" / "episode-000000" / "frame-000000.png")
+    with caplog.at_level(logging.INFO, logger="lerobot_vib"):
+        record_scripted_dataset(root, "local/k", SETTINGS, num_episodes=1, resume=True, progress=False)
+    assert other.is_file() and "Dropped" not in caplog.text and "Kept 1 files" in caplog.text
+
+
+def test_frames_where_this_run_will_stage_its_own_are_refused_and_nothing_changes(tmp_path):
+    root = tmp_path / "ds"
+    record_scripted_dataset(root, "local/k", SETTINGS, num_episodes=1, progress=False)
+    in_the_way = _png(root / "images" / "observation.images.top" / "episode-000002" / "frame-000000.png")
+    before = sorted((p.relative_to(root), p.stat().st_size) for p in root.rglob("*"))
+    with pytest.raises(RecordingError, match=r"episode-000002/frame-000000\.png.*would be overwritten"):
+        record_scripted_dataset(root, "local/k", SETTINGS, num_episodes=3, resume=True, progress=False)
+    assert sorted((p.relative_to(root), p.stat().st_size) for p in root.rglob("*")) == before
+    assert in_the_way.is_file()
+
+
 @pytest.mark.parametrize(
     ("flag", "message"),
     [
@@ -257,12 +317,33 @@ def test_an_edited_info_json_is_refused_by_name_not_rewritten(tmp_path):
         ("--image_height=0", "`image_height` and `image_width` must be >= 1"),
         ("--max_attempts=0", "`max_attempts` must be >= 1"),
         ("--max_attempts=-2", "`max_attempts` must be >= 1"),
+        ("--cameras=[nocam]", "Cameras must be a non-empty subset of ['top', "),
+        ("--cameras=[]", "got []"),
+        ("--overwrite=true --resume=true", "Choose one of `--overwrite=true`"),
     ],
 )
 def test_bad_recording_arguments_end_with_the_cause(flag, message, tmp_path):
-    proc = record_cli(f"--root={tmp_path / 'ds'}", flag)
+    proc = record_cli(f"--root={tmp_path / 'ds'}", *flag.split(" "))
     last = proc.stderr.strip().splitlines()[-1]
     assert proc.returncode != 0 and message in last and "Traceback" not in proc.stderr, proc.stderr[-2000:]
     assert not (tmp_path / "ds").exists()
     with pytest.raises(ValueError, match="max_attempts"):
         record_scripted_dataset(tmp_path / "ds", "local/k", SETTINGS, num_episodes=1, max_attempts=0, progress=False)
+
+
+@pytest.mark.parametrize(
+    ("root", "message"),
+    [
+        ("/proc/x/ds", "cannot create a folder in /proc"),
+        ("{file}/ds", "which is a file: choose a folder"),
+        ("{file}", "is a file, not a folder"),
+    ],
+)
+def test_a_root_where_no_dataset_can_be_written_is_refused_in_one_line(root, message, tmp_path):
+    """/proc/x once ended in a FileNotFoundError traceback, as if the folder were only missing."""
+    file = tmp_path / "notes.txt"
+    file.write_text("mine")
+    proc = record_cli(f"--root={root.format(file=file)}", "--num_episodes=1")
+    last = proc.stderr.strip().splitlines()[-1]
+    assert proc.returncode != 0 and message in last and "Traceback" not in proc.stderr, proc.stderr[-2000:]
+    assert file.read_text() == "mine"

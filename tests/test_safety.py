@@ -329,3 +329,79 @@ def test_in_a_batch_one_envs_nan_leaves_the_other_envs_actions_unchanged():
     (calm, _), (disturbed, stopped) = runs
     assert stopped[:, 0].tolist() == [False, True, True] + [False] * 7 and not stopped[:, 1].any()
     torch.testing.assert_close(disturbed[:, 1], calm[:, 1], rtol=0, atol=0)
+
+
+def test_each_stop_resume_and_halt_is_logged_once_with_u_and_the_threshold_in_force(caplog):
+    """lerobot-eval and lerobot-rollout showed nothing of the stop; the log is what they show."""
+    config = make_config()
+    config.safety.enabled, config.safety.gamma = True, 2.0
+    config.safety.resume_steps, config.safety.max_hold_steps = 2, 4
+    policy = with_rate_statistics(VIBPolicy(config))
+    with caplog.at_level("WARNING", logger="lerobot_vib"):
+        policy._start_episode()
+        monitor = policy.runtime.monitor
+        # stop at step 1, resume after two calm steps, stop again at step 5 and halt after 4 stopped steps
+        for u in [1.0, 3.0, 1.0, 1.0, 1.0, 3.0, 3.0, 3.0, 3.0, 3.0, 3.0]:
+            u = torch.tensor([u])
+            policy._log_stop_events(monitor.update(u), u, 2.0, torch.tensor([True]))
+            policy._episode_step += 1
+    lines = [r.getMessage() for r in caplog.records]
+    assert sum("Safety stop on:" in line for line in lines) == 1 and "safety.gamma (set by hand" in lines[0]
+    stops = [line for line in lines if line.startswith("Safety stop: ")]
+    assert stops == [
+        "Safety stop: env 0 at episode step 1: u = 3.000 > gamma = 2.000, safety.gamma (set by hand; it overrides "
+        "the calibration).",
+        "Safety stop: env 0 at episode step 5: u = 3.000 > gamma = 2.000, safety.gamma (set by hand; it overrides "
+        "the calibration).",
+    ]
+    assert [line for line in lines if "ended" in line] == [
+        "Safety stop ended: env 0 resumes at episode step 3 (u = 1.000, below 2.000 for 2 steps)."
+    ]
+    halts = [line for line in lines if "halted" in line]
+    assert len(halts) == 1 and "episode step 8" in halts[0] and "policy.resume()" in halts[0]
+
+
+def test_the_threshold_in_force_says_which_of_the_settings_applies():
+    from lerobot_vib.configuration_vib import CalibrationConfig
+
+    config = make_config()
+    config.calibration = CalibrationConfig(rate_mean=2.0, rate_std=0.5, gamma=1.318, gamma_method="conformal_rollouts")
+    config.uncertainty_score = "rate"
+    policy = VIBPolicy(config)
+    assert policy.threshold_in_force() == {
+        "enabled": False, "gamma": 1.318, "source": "calibration.gamma (conformal_rollouts)"
+    }  # fmt: skip
+    policy.config.safety.gamma = 1.5
+    assert policy.threshold_in_force()["gamma"] == 1.5
+    assert policy.threshold_in_force()["source"].startswith("safety.gamma")
+
+
+@pytest.mark.parametrize(
+    ("band_index", "stopped_steps"), [("progress", list(range(1, 9))), ("episode_step", [1, 2, 3, 4])]
+)
+def test_a_time_band_read_at_the_envs_progress_stands_still_while_the_arm_holds(band_index, stopped_steps):
+    """Read at the episode's step, the band rose above a u that never fell and let a held arm go by the clock
+    (step 5 below, u still 3); read at the env's progress, the stop ends when u falls (step 9)."""
+    config = make_config(uncertainty_score="rate")
+    policy = with_rate_statistics(VIBPolicy(config))
+    r_bar = policy.rate_mean()
+    c = policy.config.calibration
+    c.gamma_band, c.gamma, c.gamma_score, c.gamma_method = [2.0] * 4 + [50.0] * 20, 50.0, "rate", "time_band_rollouts"
+    policy.config.safety.enabled, policy.config.safety.resume_steps = True, 2
+    policy.config.safety.band_index = band_index
+    us = iter([1.0, 3.0, 3.0, 3.0, 3.0, 3.0, 3.0, 3.0, 1.0, 1.0, 1.0])
+    real = policy.observation_scores
+
+    def scripted(batch, wanted=None):
+        posterior, scores = real(batch, wanted)
+        return posterior, {"rate": torch.full_like(scores["rate"], next(us) * r_bar)}
+
+    policy.observation_scores = scripted
+    policy.reset()
+    obs = make_batch(policy.config, batch_size=1, with_action=False)
+    stopped = []
+    for step in range(11):
+        policy.select_action(obs)
+        if bool(policy.last_step.stopped[0]):
+            stopped.append(step)
+    assert stopped == stopped_steps

@@ -197,6 +197,7 @@ def test_a_band_is_set_from_rollouts_per_step_and_refuses_too_few():
         "rate_mean": 2.0,
         "score": "rate",
         "per_episode": [{"u_max": float(t.max()), "seed": i} for i, t in enumerate(traces)],
+        "env": {"type": "vib_arm", "perturbation": {"noise_std": [0.0]}},
     }
     base = CalibrationConfig(rate_mean=2.0)
     band = gamma_from_rollouts(base, info, 0.1, "rollouts", threshold="time_band", traces=traces)

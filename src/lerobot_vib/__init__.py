@@ -2,10 +2,13 @@
 Bottleneck. Importing this package registers `--policy.type=vib` (and the baseline `act_like_vib`) with LeRobot."""
 
 from . import baselines as _baselines  # noqa: F401  (registers --policy.type=act_like_vib)
+from . import cli_errors as _cli_errors
 from .configuration_vib import VIBConfig
 from .sim import env_config as _env_config  # noqa: F401  (registers --env.type=aloha_fast)
 
 __all__ = ["VIBConfig", "VIBPolicy", "make_vib_pre_post_processors"]
+
+_cli_errors.install()  # inside lerobot-train / lerobot-eval / lerobot-rollout: a refusal prints as one line
 __version__ = "0.1.0"
 
 

@@ -17,8 +17,11 @@ without a network connection.
 
 from __future__ import annotations
 
-from collections.abc import Callable
+import contextlib
+import contextvars
+from collections.abc import Callable, Iterator
 from pathlib import Path
+from typing import Any
 
 import torch
 import torchvision
@@ -128,3 +131,32 @@ def swap_norm_layers(module: nn.Module, norm: str) -> nn.Module:
         else:
             swap_norm_layers(child, norm)
     return module
+
+
+# Set while `from_pretrained` builds the model: the checkpoint overwrites the backbone, so fetching
+# ImageNet weights first would only fail offline for nothing.
+_SKIP_PRETRAINED_BACKBONE: contextvars.ContextVar[bool] = contextvars.ContextVar(
+    "vib_skip_pretrained_backbone", default=False
+)
+
+
+@contextlib.contextmanager
+def skip_pretrained_backbone() -> Iterator[None]:
+    token = _SKIP_PRETRAINED_BACKBONE.set(True)
+    try:
+        yield
+    finally:
+        _SKIP_PRETRAINED_BACKBONE.reset(token)
+
+
+def build_encoder_trunk(config: Any) -> tuple[nn.Module, int]:
+    """The trunk a VIB config asks for (its vision_backbone, weights, norm, dilation and layer). Returns
+    (trunk, channels)."""
+    weights = None if _SKIP_PRETRAINED_BACKBONE.get() else config.pretrained_backbone_weights
+    return build_resnet_trunk(
+        config.vision_backbone,
+        weights,
+        config.backbone_norm,
+        config.replace_final_stride_with_dilation,
+        config.backbone_layer,
+    )

@@ -38,6 +38,16 @@ class Posterior:
         return self.mean + torch.exp(0.5 * self.logvar) * torch.randn_like(self.mean)
 
 
+@dataclass
+class VIBOutput:
+    """What a VIB network's forward pass returns (either network: modeling_vib's pooled one, token_network's)."""
+
+    actions: Tensor  # (B, chunk_size, action_dim)
+    posterior: Posterior  # (B, K, latent_dim) each
+    rate: Tensor  # (B,)
+    token_rates: Tensor | None = None  # (B, K) the token network's per-token rates
+
+
 def gaussian_kl(mean: Tensor, logvar: Tensor, prior_mean: Tensor, prior_logvar: Tensor) -> Tensor:
     """Element-wise KL(N(mean, exp(logvar)) || N(prior_mean, exp(prior_logvar))), broadcasting."""
     return 0.5 * (
@@ -51,22 +61,29 @@ class GaussianBottleneck(nn.Module):
     Args:
         d_token: size of one state token (the slice of the fused feature it sees).
         latent_dim: size D of each token's latent z_k.
+        n_marginals: 1 (the paper's): one marginal shared by all tokens; K: one marginal per token position
+            (the token network's per-cell option), each token's KL taken against its own.
     """
 
-    def __init__(self, d_token: int, latent_dim: int):
+    def __init__(self, d_token: int, latent_dim: int, n_marginals: int = 1):
         super().__init__()
         self.latent_dim = latent_dim
         # One head shared by all tokens: tokens differ by the slice of the fused feature they carry.
         self.posterior_head = nn.Linear(d_token, 2 * latent_dim)
-        self.marginal_mean = nn.Parameter(torch.zeros(latent_dim))
-        self.marginal_logvar = nn.Parameter(torch.zeros(latent_dim))
+        shape = (latent_dim,) if n_marginals == 1 else (n_marginals, latent_dim)
+        self.marginal_mean = nn.Parameter(torch.zeros(shape))
+        self.marginal_logvar = nn.Parameter(torch.zeros(shape))
 
     def posterior(self, tokens: Tensor) -> Posterior:
         """tokens: (B, K, d_token) -> Posterior with (B, K, latent_dim) mean and log-variance."""
         mean, logvar = self.posterior_head(tokens).chunk(2, dim=-1)
         return Posterior(mean=mean, logvar=logvar.clamp(LOGVAR_MIN, LOGVAR_MAX))
 
+    def token_rates(self, posterior: Posterior) -> Tensor:
+        """Each token's rate, shape (B, K): its KL summed over latent dims."""
+        kl = gaussian_kl(posterior.mean, posterior.logvar, self.marginal_mean, self.marginal_logvar)
+        return kl.sum(dim=-1)
+
     def rate(self, posterior: Posterior) -> Tensor:
         """R per sample, shape (B,): KL summed over latent dims, averaged over tokens."""
-        kl = gaussian_kl(posterior.mean, posterior.logvar, self.marginal_mean, self.marginal_logvar)
-        return kl.sum(dim=-1).mean(dim=-1)
+        return self.token_rates(posterior).mean(dim=-1)

@@ -157,6 +157,27 @@ def stop_threshold(config, running: RateTracker, step: int) -> float:
     return mean_plus_2std_gamma(running.mean, running.std)
 
 
+def threshold_source(config) -> str:
+    """Where `stop_threshold` takes gamma from for `config`, in words: the one place that says which of
+    `safety.gamma`, `calibration.gamma` / `calibration.gamma_band` and the statistics is in force."""
+    if config.safety.gamma is not None:
+        return "safety.gamma (set by hand; it overrides the calibration)"
+    calibration = config.calibration
+    score = config.uncertainty_score
+    if calibration.gamma is not None and (calibration.gamma_score or "rate") == score:
+        if calibration.gamma_band:
+            return (
+                f"calibration.gamma_band, a time-indexed band of {len(calibration.gamma_band)} steps "
+                f"({calibration.gamma_method})"
+            )
+        return f"calibration.gamma ({calibration.gamma_method})"
+    if score != "rate":
+        return f"mean + 2 std of {score} over the calibration frames"
+    if calibration.rate_mean is not None and calibration.rate_std is not None:
+        return "mean + 2 std of the rate over the calibration frames"
+    return "mean + 2 std of the rate's running statistics from training"
+
+
 _GAMMA_METHODS = {
     "mean_plus_2std": "mean + 2 std of u over the calibration frames (the paper's rule)",
     "conformal": "split-conformal on the maximum u of {n} held-out dataset episodes at alpha = {alpha}",
@@ -165,6 +186,15 @@ _GAMMA_METHODS = {
     "time_band_rollouts": "a time-indexed band (one threshold per episode step) from {n} clean rollouts at "
     "alpha = {alpha}; gamma is its largest value",
 }
+
+
+def measured_success(calibration) -> tuple[int, int, str] | None:
+    """(trials, successes, what was run) of the clean rollouts a checkpoint's gamma was set on, if recorded."""
+    c = calibration
+    if c.rollout_successes is None or not c.rollout_seeds:
+        return None
+    seeds = f"seeds {min(c.rollout_seeds)}-{max(c.rollout_seeds)}"
+    return len(c.rollout_seeds), c.rollout_successes, f"clean rollouts in simulation (lerobot-vib-eval, {seeds})"
 
 
 def describe_calibration(config, rate_mean: float, training_data: str | None = None) -> str:

@@ -2,22 +2,35 @@
 
 from __future__ import annotations
 
+import json
 import math
+import sys
 from dataclasses import dataclass, field
+from pathlib import Path
 
+import huggingface_hub
 from draccus.utils import ParsingError
-from lerobot.configs import FeatureType, NormalizationMode, PreTrainedConfig
+from lerobot.configs import FeatureType, NormalizationMode, PreTrainedConfig, parser
 from lerobot.optim import AdamWConfig
 from lerobot.optim.schedulers import CosineAnnealingWithWarmupSchedulerConfig
 from lerobot.utils.constants import ACTION, OBS_STATE
 
 from .backbone import BACKBONE_LAYERS, BACKBONE_NORMS
-from .scores import RND_INPUTS, SCORES
+from .scores import RND_INPUTS, SCORES, TOKEN_SCORES
 
 IMAGE_POOLINGS = ("spatial_softmax", "spatial_softmax_avg", "avg")
 POSITION_EMBEDDINGS = ("learned", "sinusoidal")
 TEMPORAL_ENSEMBLES = ("none", "act", "uncertainty")
 SAFETY_ACTIONS = ("hold", "home")
+BAND_INDICES = ("progress", "episode_step")
+# Which features `normalization_floor` applies to, by `normalization_floor_features`.
+FLOORED_TYPES = {
+    "all": (FeatureType.VISUAL, FeatureType.STATE, FeatureType.ENV, FeatureType.ACTION),
+    "state": (FeatureType.STATE, FeatureType.ENV),
+    "action": (FeatureType.ACTION,),
+}
+ENCODERS = ("pooled", "tokens")
+TOKEN_MARGINALS = ("type", "cell")
 
 
 class VIBConfigError(ParsingError):
@@ -35,6 +48,19 @@ DEFAULT_SCORE = "low_image_rate"
 
 # The trunk's normalization when it is trained from scratch: the best of `benchmarks/backbone_norm.py`.
 SCRATCH_BACKBONE_NORM = "group_norm"
+
+
+def _cli_dataset_action_dim() -> int | None:
+    """The action size of the local dataset that `--dataset.root` names on the command line, if it names one."""
+    root = parser.parse_arg("dataset.root")
+    info = Path(root) / "meta" / "info.json" if root else None
+    if info is None or not info.is_file():
+        return None
+    try:
+        shape = json.loads(info.read_text())["features"][ACTION]["shape"]
+    except (KeyError, TypeError, json.JSONDecodeError):
+        return None  # LeRobot reports a malformed dataset when it loads it
+    return int(shape[0]) if len(shape) == 1 else None
 
 
 @dataclass
@@ -65,6 +91,11 @@ class SafetyConfig:
         max_hold_steps: Consecutive stopped steps after which the stop is terminal (halted). 100 steps is
             5 s on the simulated arm (20 Hz) and 2 s in ALOHA (50 Hz); longer than any pause-and-resume
             there (an occluder for at most 40 steps, then `resume_steps`).
+        band_index: How a time-indexed threshold (`calibration.gamma_band`) is read. "progress": at the
+            number of steps the env has run, not counting stopped ones, so the band stands still while the arm
+            holds and a stop ends when u falls, not because the clock moved the band above a u that never
+            changed. "episode_step": at the episode's step, stopped ones included (the band as calibrated on
+            rollouts without stops).
     """
 
     enabled: bool = False
@@ -75,6 +106,7 @@ class SafetyConfig:
     home_pose: list[float] | None = None
     home_max_step: float = 0.01
     max_hold_steps: int = 100
+    band_index: str = "progress"
 
     def __post_init__(self):
         if self.action not in SAFETY_ACTIONS:
@@ -83,6 +115,8 @@ class SafetyConfig:
             raise VIBConfigError("`safety.action=home` needs `safety.home_pose` (the home action in robot units).")
         if self.resume_steps < 1:
             raise VIBConfigError(f"`safety.resume_steps` must be >= 1, got {self.resume_steps}.")
+        if self.band_index not in BAND_INDICES:
+            raise VIBConfigError(f"`safety.band_index` must be one of {BAND_INDICES}, got {self.band_index!r}.")
         if self.max_hold_steps is None or self.max_hold_steps < 1:
             raise VIBConfigError(
                 f"`safety.max_hold_steps` must be >= 1 (a stop must be able to end), got {self.max_hold_steps}."
@@ -93,11 +127,19 @@ class SafetyConfig:
             value = getattr(self, name)
             if value is not None and not (math.isfinite(value) and value > 0):
                 raise VIBConfigError(f"`safety.{name}` must be a positive finite number, got {value}.")
+        if self.gamma is not None and self.resume_threshold is not None and self.resume_threshold > self.gamma:
+            raise VIBConfigError(
+                f"`safety.resume_threshold` ({self.resume_threshold}) must not exceed `safety.gamma` ({self.gamma}): "
+                "a u between them would resume and stop again at once."
+            )
 
     def check_action_dim(self, action_dim: int) -> None:
         """The home pose has one value per action dimension (known once the features are)."""
         if self.home_pose is not None and len(self.home_pose) != action_dim:
-            raise ValueError(f"`safety.home_pose` has {len(self.home_pose)} values, the action has {action_dim}.")
+            raise VIBConfigError(
+                f"`safety.home_pose` has {len(self.home_pose)} values, the action has {action_dim}: give one value "
+                "per action dimension, in robot units."
+            )
 
 
 @dataclass
@@ -202,6 +244,25 @@ class VIBConfig(PreTrainedConfig):
             turn any deviation into a huge z-score that dominates the inputs and the rate. Applied when the
             processors are built from dataset statistics (training); a checkpoint keeps the statistics it
             saved. None: LeRobot's statistics as they are (checkpoints trained before the floor existed).
+        normalization_floor_features: Which features the floor applies to: "all" (cameras, state, environment
+            state and action), "state" (the state vectors only) or "action" (the action only). The floor keeps a
+            never-moved joint from dominating u, and also flattens what the network may read from it (on the
+            arm, a joint's twitch at contact): which scope costs least success is a question for the
+            validation seeds.
+        encoder: The network (docs/model.md). "pooled" (the paper's Fig. 2 as drawn): each
+            camera's trunk feature pooled to keypoints, summed with the state path into `n_state_tokens` state
+            tokens, each with a posterior, decoded by an encoder-only transformer. "tokens" (`token_network.py`):
+            ACT's own memory, one token per cell of each camera's feature map (a 1x1 projection, ACT's 2D
+            sinusoidal embedding) and one per state vector, each with a posterior before ACT's encoder, and
+            ACT's decoder with action queries; its image rates form `last_step.rate_map`. "tokens" ignores
+            `image_pooling`, `spatial_softmax_num_keypoints`, `mlp_hidden_dim`, `n_state_tokens`, `d_token` and
+            `position_embedding`.
+        token_marginal: "tokens" only: "type" (one learnable marginal per token type: image, state,
+            environment state) or "cell" (one per image cell, so each cell is judged against what it usually
+            shows).
+        n_decoder_layers: "tokens" only: layers of ACT's decoder (ACT's default 1); `n_layers` sets its encoder.
+        map_top_k: "tokens" only: the "map_score" reduces the per-cell z-scores of the rate map by the mean of
+            its k largest (1: the maximum).
         vision_backbone: torchvision ResNet used for every camera (one shared trunk), as in ACT.
         pretrained_backbone_weights: Initial weights of the backbone: a torchvision weights name
             ("ResNet18_Weights.IMAGENET1K_V1", the default, as ACT; needs the torch hub cache or a network
@@ -300,6 +361,13 @@ class VIBConfig(PreTrainedConfig):
     )
 
     normalization_floor: float | None = 0.1
+    normalization_floor_features: str = "all"
+
+    # Which network (DESIGN 1): the paper's pooled state tokens, or ACT's token memory with a bottleneck.
+    encoder: str = "pooled"
+    token_marginal: str = "type"
+    n_decoder_layers: int = 1
+    map_top_k: int = 1
 
     # Encoder p(z|s).
     vision_backbone: str = "resnet18"
@@ -382,6 +450,11 @@ class VIBConfig(PreTrainedConfig):
             math.isfinite(self.normalization_floor) and 0 < self.normalization_floor <= 1
         ):
             raise VIBConfigError(f"`normalization_floor` must be in (0, 1] or null, got {self.normalization_floor}.")
+        if self.normalization_floor_features not in FLOORED_TYPES:
+            raise VIBConfigError(
+                f"`normalization_floor_features` must be one of {tuple(FLOORED_TYPES)}, got "
+                f"{self.normalization_floor_features!r}."
+            )
         if self.n_obs_steps != 1:
             raise VIBConfigError(f"Only `n_obs_steps=1` is supported, got {self.n_obs_steps}.")
         for name in ("chunk_size", "n_action_steps", "n_state_tokens", "d_token", "latent_dim", "n_layers"):
@@ -410,10 +483,65 @@ class VIBConfig(PreTrainedConfig):
             raise VIBConfigError(
                 f"`temporal_ensemble` must be one of {TEMPORAL_ENSEMBLES}, got {self.temporal_ensemble!r}."
             )
+        if self.encoder not in ENCODERS:
+            raise VIBConfigError(f"`encoder` must be one of {ENCODERS}, got {self.encoder!r}.")
+        if self.token_marginal not in TOKEN_MARGINALS:
+            raise VIBConfigError(f"`token_marginal` must be one of {TOKEN_MARGINALS}, got {self.token_marginal!r}.")
+        if self.n_decoder_layers < 1 or self.map_top_k < 1:
+            raise VIBConfigError(
+                f"`n_decoder_layers` and `map_top_k` must be >= 1, got {self.n_decoder_layers} and {self.map_top_k}."
+            )
+        if self.encoder == "tokens" and self.rnd_input == "pooled":
+            raise VIBConfigError(
+                "`rnd_input=pooled` reads the pooled network's keypoints; the token network has none: use `fused` "
+                "(its tokens' posterior means)."
+            )
         if self.temporal_ensemble != "none" and self.n_action_steps != 1:
             raise VIBConfigError(
                 f"`temporal_ensemble={self.temporal_ensemble}` needs `n_action_steps=1`: the policy must be "
                 f"queried every step to ensemble (got n_action_steps={self.n_action_steps})."
+            )
+        self._check_safety_against_known_values()
+        self._check_hub_push_can_happen()
+
+    def _check_hub_push_can_happen(self) -> None:
+        """`lerobot-train` pushes to the Hub after the last step: offline, refuse before the first one."""
+        training = Path(sys.argv[0]).name == "lerobot-train" if sys.argv else False
+        if training and self.push_to_hub and self.repo_id and huggingface_hub.constants.HF_HUB_OFFLINE:
+            raise VIBConfigError(
+                f"`push_to_hub=true` with `repo_id={self.repo_id}` would push after training, but the Hub is "
+                "offline (HF_HUB_OFFLINE): set `--policy.push_to_hub=false` and push the calibrated checkpoint "
+                "later, or go online."
+            )
+
+    def _check_safety_against_known_values(self) -> None:
+        """What the stop's settings can be checked against before any data loads or episode runs: the calibrated
+        gamma, the action size of a loaded config, or of the local dataset named on the command line (so that
+        `lerobot-train` refuses a home pose of the wrong length before it loads the dataset)."""
+        safety, calibration = self.safety, self.calibration
+        if (
+            safety.gamma is None
+            and safety.resume_threshold is not None
+            and calibration.gamma is not None
+            and not calibration.gamma_band  # a band moves gamma every step; the hysteresis is kept below it
+            and safety.resume_threshold > calibration.gamma
+        ):
+            raise VIBConfigError(
+                f"`safety.resume_threshold` ({safety.resume_threshold}) must not exceed the calibrated gamma "
+                f"({calibration.gamma}): a u between them would resume and stop again at once."
+            )
+        if safety.home_pose is None:
+            return
+        if self.output_features and ACTION in self.output_features:
+            action_dim, source = self.output_features[ACTION].shape[0], "the policy's action"
+        elif (action_dim := _cli_dataset_action_dim()) is not None:
+            source = f"the action of the dataset at --dataset.root={parser.parse_arg('dataset.root')}"
+        else:
+            return
+        if len(safety.home_pose) != action_dim:
+            raise VIBConfigError(
+                f"`safety.home_pose` has {len(safety.home_pose)} values, {source} has {action_dim}: give one "
+                "value per action dimension, in robot units."
             )
 
     def get_optimizer_preset(self) -> AdamWConfig:
@@ -432,7 +560,12 @@ class VIBConfig(PreTrainedConfig):
             raise ValueError(f"`{ACTION}` must be a vector, got shape {tuple(self.action_feature.shape)}.")
         if self.uncertainty_score is None:
             self.uncertainty_score = DEFAULT_SCORE if self.image_features else "rate"
-        if self.uncertainty_score in ("image_rate", "low_image_rate") and not self.image_features:
+        if self.uncertainty_score in TOKEN_SCORES and self.encoder != "tokens":
+            raise ValueError(
+                f"`uncertainty_score={self.uncertainty_score}` reads per-token rates, which only the token network "
+                "has: set `encoder=tokens`, or use another score."
+            )
+        if self.uncertainty_score in ("image_rate", "low_image_rate", "map_score") and not self.image_features:
             raise ValueError(
                 f"`uncertainty_score={self.uncertainty_score}` reads the camera path, and this policy has no camera: "
                 "use `rate` (or `embedding_rnd`, `chunk_disagreement`)."

@@ -9,16 +9,17 @@
                      -> the action-query outputs -> linear head -> (chunk_size, action_dim)
     loss:            L1(actions, non-padded steps) + beta * mean(R)
 
-No CVAE, no cross-attention decoder, no autoregression. Transformer layers are LeRobot's ACT layers.
+No CVAE, no cross-attention decoder, no autoregression. Transformer layers are LeRobot's ACT layers. That is the
+pooled network (the paper's Fig. 2 as drawn, the default). With `encoder=tokens` the policy runs the token
+network instead (token_network.py: a posterior per token of ACT's own memory); the policy's plumbing is the
+same for both: `network.encode`, `network.rate`, `network.decode`.
 """
 
 from __future__ import annotations
 
-import contextlib
-import contextvars
 import logging
 import math
-from collections.abc import Iterator
+import re
 from dataclasses import dataclass
 from pathlib import Path
 from types import SimpleNamespace
@@ -26,7 +27,7 @@ from typing import Any
 
 import torch
 import torch.nn.functional as F
-from huggingface_hub import ModelCard
+from huggingface_hub import EvalResult, ModelCard
 from lerobot.policies.act.modeling_act import ACTEncoder, create_sinusoidal_pos_embedding
 from lerobot.policies.diffusion.modeling_diffusion import SpatialSoftmax
 from lerobot.policies.pretrained import PreTrainedPolicy
@@ -34,16 +35,17 @@ from lerobot.utils.constants import ACTION, OBS_ENV_STATE, OBS_STATE
 from safetensors import SafetensorError
 from torch import Tensor, nn
 
-from .backbone import build_resnet_trunk
-from .bottleneck import GaussianBottleneck, Posterior
-from .calibration import RateTracker, describe_calibration, stop_threshold
-from .configuration_vib import VIBConfig
+from .backbone import build_encoder_trunk, skip_pretrained_backbone
+from .bottleneck import GaussianBottleneck, Posterior, VIBOutput
+from .calibration import RateTracker, describe_calibration, measured_success, stop_threshold, threshold_source
+from .configuration_vib import VIBConfig, VIBConfigError
 from .ema import make_ema
 from .inputs import check_observation, check_training_batch
 from .processor_vib import vib_dataset_stats
 from .runtime import ChunkRuntime
 from .safety import PolicySafetyAction, RobotUnits, SafetyMonitor
-from .scores import ChunkDisagreement, EmbeddingRND
+from .scores import ChunkDisagreement, EmbeddingRND, token_scores
+from .token_network import TokenNetwork
 
 logger = logging.getLogger(__name__)
 
@@ -53,35 +55,12 @@ encoding passes through an Information Bottleneck; its *rate*, KL(p(z|s) || m(z)
 score available at run time (Uncertainty-Guided Robotic Manipulation Through Variational Information \
 Bottleneck in Imitation Learning, VIB-ILCtrl).
 
-The policy type comes from the LeRobot plugin `lerobot_policy_vib`: install it next to LeRobot \
-(`pip install lerobot_policy_vib`) before `lerobot-eval` / `lerobot-rollout` / `--policy.path=...` can load it."""
+The policy type comes from the LeRobot plugin `lerobot_policy_vib` (the lerobot-vib project), which is not on \
+PyPI: install it from its source next to LeRobot (`pip install -e .` in a checkout of lerobot-vib) before \
+`lerobot-eval` / `lerobot-rollout` / `--policy.path=...` can load it."""
 
-# Set while `from_pretrained` builds the model: the checkpoint overwrites the backbone, so fetching
-# ImageNet weights first would only fail offline for nothing.
-_SKIP_PRETRAINED_BACKBONE: contextvars.ContextVar[bool] = contextvars.ContextVar(
-    "vib_skip_pretrained_backbone", default=False
-)
-
-
-@contextlib.contextmanager
-def _skip_pretrained_backbone() -> Iterator[None]:
-    token = _SKIP_PRETRAINED_BACKBONE.set(True)
-    try:
-        yield
-    finally:
-        _SKIP_PRETRAINED_BACKBONE.reset(token)
-
-
-def build_encoder_trunk(config: VIBConfig) -> tuple[nn.Module, int]:
-    """The configured ResNet trunk (`backbone.py`). Returns (trunk, channels)."""
-    weights = None if _SKIP_PRETRAINED_BACKBONE.get() else config.pretrained_backbone_weights
-    return build_resnet_trunk(
-        config.vision_backbone,
-        weights,
-        config.backbone_norm,
-        config.replace_final_stride_with_dilation,
-        config.backbone_layer,
-    )
+# LeRobot's card template says this until someone fills its table in.
+NO_EVALUATION = "_No evaluation results have been provided for this policy yet._"
 
 
 def _mlp(in_dim: int, hidden_dim: int, out_dim: int) -> nn.Sequential:
@@ -216,13 +195,6 @@ class ActionDecoder(nn.Module):
 
 
 @dataclass
-class VIBOutput:
-    actions: Tensor  # (B, chunk_size, action_dim)
-    posterior: Posterior  # (B, K, latent_dim) each
-    rate: Tensor  # (B,)
-
-
-@dataclass
 class UncertaintyStep:
     """What `select_action` measured and decided at one step, per batch element."""
 
@@ -236,6 +208,9 @@ class UncertaintyStep:
     halted: Tensor | None = None  # (B,) bool: the stop is terminal; only `policy.resume()` ends it
     score: str = "rate"  # the score u was read from (`VIBConfig.uncertainty_score`)
     scores: dict[str, Tensor] | None = None  # (B,) raw value of every score computed at this step, by name
+    rate_map: Tensor | None = None  # (B, cameras, H', W') the image tokens' rates (token network only)
+    # (B,) each env's threshold, where a time band is read at each env's progress (`gamma` is env 0's)
+    thresholds: Tensor | None = None
 
     def row(self, i: int = 0) -> dict[str, float | bool]:
         """Batch element i as plain numbers (for traces)."""
@@ -268,10 +243,23 @@ class VIB(nn.Module):
         tokens = fused.view(fused.shape[0], self.config.n_state_tokens, self.config.d_token)
         return self.bottleneck.posterior(tokens)
 
+    def rate(self, posterior: Posterior) -> Tensor:
+        return self.bottleneck.rate(posterior)
+
+    def decode(self, z: Tensor) -> Tensor:
+        return self.decoder(z)
+
     def forward(self, batch: dict[str, Tensor], sample: bool) -> VIBOutput:
         posterior = self.encode(batch)
         z = posterior.sample() if sample else posterior.mean
         return VIBOutput(self.decoder(z), posterior, self.bottleneck.rate(posterior))
+
+
+# torch's report of a tensor whose shape differs between a file and the network it is loaded into.
+SIZE_MISMATCH = re.compile(
+    r"size mismatch for ([\w.]+): copying a param with shape (torch.Size\(\[[^]]*\]\)) from checkpoint, "
+    r"the shape in current model is (torch.Size\(\[[^]]*\]\))"
+)
 
 
 class VIBPolicy(PreTrainedPolicy):
@@ -294,14 +282,20 @@ class VIBPolicy(PreTrainedPolicy):
         }
         if ignored := sorted(set(config.input_features) - set(self._used_inputs)):
             logger.warning("VIB ignores these input features: %s", ignored)
-        self.model = VIB(config)
-        # The other scores' fitted parts (scores.py): the state path's training mean for "image_rate" and the
-        # RND of "embedding_rnd". NaN / unfitted until `lerobot-vib-calibrate`; outside `model`, so neither
-        # the optimizer nor the weight average touches them.
-        fused_dim = config.n_state_tokens * config.d_token
-        self.register_buffer("state_embedding_mean", torch.full((fused_dim,), torch.nan))
-        state_dim = config.robot_state_feature.shape[0] if config.robot_state_feature else 0
-        rnd_dim = fused_dim if config.rnd_input == "fused" else self.model.encoder.pooled_dim + state_dim
+        self.model = TokenNetwork(config) if config.encoder == "tokens" else VIB(config)
+        # The other scores' fitted parts (scores.py): the pooled network's state-path training mean for
+        # "image_rate", the token network's per-cell rate statistics for "map_score", and the RND of
+        # "embedding_rnd". NaN / unfitted until `lerobot-vib-calibrate`; outside `model`, so neither the
+        # optimizer nor the weight average touches them.
+        if config.encoder == "tokens":
+            self.register_buffer("map_cell_mean", torch.full((self.model.n_cells,), torch.nan))
+            self.register_buffer("map_cell_std", torch.full((self.model.n_cells,), torch.nan))
+            rnd_dim = self.model.embedding_dim
+        else:
+            fused_dim = config.n_state_tokens * config.d_token
+            self.register_buffer("state_embedding_mean", torch.full((fused_dim,), torch.nan))
+            state_dim = config.robot_state_feature.shape[0] if config.robot_state_feature else 0
+            rnd_dim = fused_dim if config.rnd_input == "fused" else self.model.encoder.pooled_dim + state_dim
         self.embedding_rnd = EmbeddingRND(rnd_dim)
         # Traces every score at every step (benchmarks): decodes a chunk per step for "chunk_disagreement".
         self.trace_all_scores = False
@@ -316,22 +310,80 @@ class VIBPolicy(PreTrainedPolicy):
         self.robot_units = RobotUnits(units_features, config.normalization_mapping, stats)
         self.last_rate: Tensor | None = None
         self.last_step: UncertaintyStep | None = None
+        self._threshold_announced = False
         self.reset()
 
     @classmethod
     def from_pretrained(cls, pretrained_name_or_path: str | Path, **kwargs: Any) -> VIBPolicy:
-        with _skip_pretrained_backbone():
-            return super().from_pretrained(pretrained_name_or_path, **kwargs)
+        with skip_pretrained_backbone():
+            policy = super().from_pretrained(pretrained_name_or_path, **kwargs)
+        if policy.config.safety.enabled or policy.config.temporal_ensemble == "uncertainty":
+            policy.check_ready_to_act_on_u(str(pretrained_name_or_path))
+        return policy
+
+    def check_ready_to_act_on_u(self, source: str = "This checkpoint") -> None:
+        """Refuse, when the policy loads and not at a robot's first step, a stop or Eq. 6 that could not work:
+        no R_bar, a score whose statistics were never calibrated, no finite gamma, or a resume threshold above it."""
+        problems = []
+        r_bar = self.rate_mean()
+        if not (math.isfinite(r_bar) and r_bar > 0):
+            problems.append("it has no rate statistics (R_bar)")
+        score = self.config.uncertainty_score
+        if missing := self._missing_score_parts(score):
+            problems.append(f"`uncertainty_score={score}` needs {' and '.join(missing)}")
+        if problems:
+            raise VIBConfigError(
+                f"{source} cannot act on u ({'; '.join(problems)}): run `lerobot-vib-calibrate "
+                "--policy.path=<checkpoint> --dataset.repo_id=<its training data>` and load the calibrated "
+                "checkpoint, or turn off what reads u (`--policy.safety.enabled=false`, "
+                "`--policy.temporal_ensemble=act`)."
+            )
+        if not self.config.safety.enabled:
+            return
+        gamma = self.stop_threshold(step=0)
+        if not math.isfinite(gamma):
+            raise VIBConfigError(f"{source}: the safety stop is enabled but its threshold gamma is unknown.")
+        resume = self.config.safety.resume_threshold
+        if resume is not None and not self.config.calibration.gamma_band and resume > gamma:
+            raise VIBConfigError(
+                f"{source}: `safety.resume_threshold` ({resume}) must not exceed gamma ({gamma:.4g}): a u between "
+                "them would resume and stop again at once."
+            )
+
+    def _missing_score_parts(self, score: str) -> list[str]:
+        """What `score` needs that this checkpoint lacks (filled by lerobot-vib-calibrate)."""
+        missing = []
+        if score != "rate" and not math.isfinite(self.score_mean(score)):
+            missing.append("its mean over the training frames")
+        if self.config.encoder == "tokens":
+            if score == "map_score" and not torch.isfinite(self.map_cell_mean).all():
+                missing.append("each image cell's rate statistics")
+        elif score in ("image_rate", "low_image_rate") and not torch.isfinite(self.state_embedding_mean).all():
+            missing.append("the state path's training mean")
+        if score == "embedding_rnd" and not self.embedding_rnd.fitted:
+            missing.append("a fitted RND")
+        return missing
 
     @classmethod
     def _load_as_safetensor(cls, model: VIBPolicy, model_file: str, map_location: str, strict: bool) -> VIBPolicy:
         try:
             return super()._load_as_safetensor(model, model_file, map_location, strict)
         except SafetensorError as e:
-            raise RuntimeError(
+            raise VIBConfigError(
                 f"Cannot read the weights in {model_file}: the file is damaged or only partly downloaded or copied "
                 f"({e}). Copy or download the checkpoint again (from the Hub: `force_download=True`)."
             ) from e
+        except RuntimeError as e:
+            mismatches = SIZE_MISMATCH.findall(str(e))
+            if not mismatches:
+                raise
+            name, saved, built = mismatches[0]
+            raise VIBConfigError(
+                f"The weights in {model_file} do not fit this configuration: {len(mismatches)} tensor(s) differ in "
+                f"shape, first {name} ({saved[11:-1]} in the file, {built[11:-1]} in the network built from the "
+                "config). A `--policy.*` flag that changes the network's sizes (chunk_size, dim_model, n_layers, "
+                "the cameras' image size, ...) cannot be applied to trained weights: drop it."
+            ) from None
 
     def generate_model_card(self, *args: Any, **kwargs: Any) -> ModelCard:
         """LeRobot's card, with what the policy is, the plugin it needs to load, and its uncertainty: the data,
@@ -344,6 +396,24 @@ class VIBPolicy(PreTrainedPolicy):
             card.text = MODEL_CARD_INTRO + "\n\n" + card.text
         card.data.tags = sorted(set(card.data.tags or []) | {"vib", "uncertainty"})
         dataset = kwargs.get("dataset_repo_id", args[0] if args else None)
+        measured = measured_success(self.config.calibration)
+        if measured is not None:  # LeRobot's table, and the Hub's evaluation results, from what was measured
+            trials, successes, where = measured
+            table = (
+                "| Task | Trials | Successes | Success rate |\n| ---- | ------ | --------- | ------------ |\n"
+                f"| {where} | {trials} | {successes} | {100 * successes / trials:.0f}% |"
+            )
+            card.text = card.text.replace(NO_EVALUATION, table)
+            card.data.model_name = card.data.model_name or self.config.repo_id or "vib"
+            card.data.eval_results = [
+                EvalResult(
+                    task_type="robotics",
+                    dataset_type=dataset or self.config.calibration.dataset_repo_id or "unknown",
+                    dataset_name=where,
+                    metric_type="success_rate",
+                    metric_value=round(successes / trials, 4),
+                )
+            ]
         card.text = card.text.rstrip("\n") + "\n\n" + describe_calibration(self.config, self.rate_mean(), dataset)
         return card
 
@@ -351,11 +421,12 @@ class VIBPolicy(PreTrainedPolicy):
         backbone, rest = [], []
         for name, p in self.named_parameters():
             if p.requires_grad:
-                (backbone if name.startswith("model.encoder.backbone") else rest).append(p)
+                trunk = name.startswith(("model.encoder.backbone.", "model.backbone."))  # pooled, tokens
+                (backbone if trunk else rest).append(p)
         return [{"params": rest}, {"params": backbone, "lr": self.config.optimizer_lr_backbone}]
 
     @property
-    def network(self) -> VIB:
+    def network(self) -> VIB | TokenNetwork:
         """The weights the policy acts with: the moving average in eval mode when `ema_decay` is set."""
         if self.ema is not None and not self.training:
             return self.ema.module
@@ -377,6 +448,9 @@ class VIBPolicy(PreTrainedPolicy):
         self._disagreement = ChunkDisagreement(cfg.chunk_size)
         self._episode_step = 0
         self._active_score = cfg.uncertainty_score or "rate"
+        self._rate_map: Tensor | None = None
+        self._halted_before: Tensor | None = None
+        self._progress: Tensor | None = None  # (B,) steps each env ran, stopped ones not counted
         self.last_step = None
 
     # ------------------------------------------------------------------------------------------- uncertainty
@@ -407,13 +481,7 @@ class VIBPolicy(PreTrainedPolicy):
                 "or run `lerobot-vib-calibrate` on its training data."
             )
         score = self.config.uncertainty_score
-        missing = []
-        if score != "rate" and not math.isfinite(self.score_mean(score)):
-            missing.append("its mean over the training frames")
-        if score in ("image_rate", "low_image_rate") and not torch.isfinite(self.state_embedding_mean).all():
-            missing.append("the state path's training mean")
-        if score == "embedding_rnd" and not self.embedding_rnd.fitted:
-            missing.append("a fitted RND")
+        missing = self._missing_score_parts(score)
         self._active_score = score
         if missing:
             message = (
@@ -455,6 +523,13 @@ class VIBPolicy(PreTrainedPolicy):
         if resume is not None and gamma is not None and self.config.calibration.gamma_band:
             resume = min(resume, gamma)  # the band moves gamma every step; the hysteresis stays below it
         self.runtime.reset(SafetyMonitor(gamma, resume, safety.resume_steps, safety.max_hold_steps))
+        if safety.enabled and not self._threshold_announced:  # once per policy, not once per episode
+            self._threshold_announced = True
+            logger.warning(
+                "Safety stop on: u is %s over its training mean; the stop threshold in force is %s (gamma = %.4g "
+                "at the first step).",
+                self._active_score, threshold_source(self.config), gamma,
+            )  # fmt: skip
 
     # ---------------------------------------------------------------------------------------------- input checks
 
@@ -506,11 +581,12 @@ class VIBPolicy(PreTrainedPolicy):
             if posterior is None:
                 raise RuntimeError("A chunk must be planned but the observation was not encoded.")
             z = posterior.sample() if self.config.sample_latent_at_inference else posterior.mean
-            planned.append(self.network.decoder(z))
+            planned.append(self.network.decode(z))
             return planned[0]
 
         if self._reuse_last_plan_uncertainty():
             posterior, rate, u, scores = None, self.last_step.rate, self.last_step.u, self.last_step.scores
+            self._rate_map = self.last_step.rate_map
         else:
             posterior, scores = self.observation_scores(batch, None if self.trace_all_scores else score)
             rate = scores["rate"]
@@ -518,12 +594,24 @@ class VIBPolicy(PreTrainedPolicy):
                 scores["chunk_disagreement"] = self._disagreement.update(decode())
             u = scores[score] / self.score_mean(score)
 
-        gamma = self.stop_threshold()
+        gamma, thresholds = self.stop_threshold(), None
         if self.config.calibration.gamma_band and self.runtime.monitor.gamma is not None:
-            self.runtime.monitor.set_threshold(gamma, self.config.safety.resume_threshold)
+            if self.config.safety.band_index == "progress":  # each env reads the band at its own progress
+                if self._progress is None:
+                    self._progress = torch.zeros(batch_size, dtype=torch.long, device=u.device)
+                thresholds = torch.tensor(
+                    [self.stop_threshold(int(p)) for p in self._progress], dtype=u.dtype, device=u.device
+                )
+                gamma = float(thresholds[0])
+                self.runtime.monitor.set_threshold(thresholds, self.config.safety.resume_threshold)
+            else:
+                self.runtime.monitor.set_threshold(gamma, self.config.safety.resume_threshold)
         action, decision = self.runtime.step(
             u, decode, lambda last: self._safety_action(batch, batch_size, last), unknown=~obs_finite
         )
+        if self._progress is not None:  # a stopped env holds still: its task did not advance
+            self._progress += (~decision.stopped.to(self._progress.device)).long()
+        self._log_stop_events(decision, u, gamma if thresholds is None else thresholds, obs_finite)
         self._episode_step += 1
         self.last_rate = rate
         self.last_step = UncertaintyStep(
@@ -537,8 +625,48 @@ class VIBPolicy(PreTrainedPolicy):
             halted=decision.halted,
             score=score,
             scores=scores,
+            rate_map=self._rate_map,
+            thresholds=thresholds,
         )
         return action
+
+    def _log_stop_events(self, decision, u: Tensor, gamma: float | Tensor, obs_finite: Tensor) -> None:
+        """One line per stop, resume and halt, when it happens, with u and the threshold in force: what
+        `lerobot-eval` and `lerobot-rollout` show of the stop. `gamma`: one, or one per env."""
+        step = self._episode_step
+        for i in torch.nonzero(decision.just_stopped).flatten().tolist():
+            g = float(gamma[i]) if isinstance(gamma, Tensor) else gamma
+            if not bool(obs_finite[i]) or not math.isfinite(float(u[i])):
+                cause = "the observation or u is not finite (unknown means stop)"
+            else:
+                cause = f"u = {float(u[i]):.3f} > gamma = {g:.3f}, {threshold_source(self.config)}"
+            logger.warning("Safety stop: env %d at episode step %d: %s.", i, step, cause)
+        resume = self.runtime.monitor.resume_threshold
+        for i in torch.nonzero(decision.resumed).flatten().tolist():
+            below = float(resume[i]) if isinstance(resume, Tensor) else float(resume)
+            logger.warning(
+                "Safety stop ended: env %d resumes at episode step %d (u = %.3f, below %.3f for %d steps).",
+                i, step, float(u[i]), below, self.config.safety.resume_steps,
+            )  # fmt: skip
+        if decision.halted is not None:
+            halted_now = decision.halted & ~self._halted_before if self._halted_before is not None else decision.halted
+            for i in torch.nonzero(halted_now).flatten().tolist():
+                logger.warning(
+                    "Safety stop halted: env %d at episode step %d, after %d stopped steps "
+                    "(safety.max_hold_steps); only policy.resume() ends it.",
+                    i, step, self.config.safety.max_hold_steps,
+                )  # fmt: skip
+            self._halted_before = decision.halted.clone()
+
+    def threshold_in_force(self, step: int | None = None) -> dict[str, Any]:
+        """The stop threshold in force and where it comes from, in one place: {"enabled", "gamma" (at episode
+        step `step`, default the current one), "source"}. `safety.gamma: null` beside `calibration.gamma` means
+        the calibrated one applies; this says so."""
+        return {
+            "enabled": self.config.safety.enabled,
+            "gamma": self.stop_threshold(step),
+            "source": threshold_source(self.config),
+        }
 
     def resume(self, envs: Tensor | None = None, grace_steps: int = 0) -> Tensor:
         """Resume stopped or halted envs now, whatever u is: the explicit decision of an operator or a robot
@@ -563,7 +691,7 @@ class VIBPolicy(PreTrainedPolicy):
     def _encode(self, batch: dict[str, Tensor]) -> tuple[Posterior, Tensor]:
         network = self.network
         posterior = network.encode(batch)
-        return posterior, network.bottleneck.rate(posterior)
+        return posterior, network.rate(posterior)
 
     def rnd_embedding(self, parts: EncoderParts, batch: dict[str, Tensor]) -> Tensor:
         """The embedding that "embedding_rnd" reads (`config.rnd_input`)."""
@@ -577,8 +705,19 @@ class VIBPolicy(PreTrainedPolicy):
     ) -> tuple[Posterior, dict[str, Tensor]]:
         """One encoder pass: the posterior and the raw value (B,) of every observation score that is fitted
         ("rate" always; the image path's and RND once calibrated), or with `wanted` only that one beside the
-        rate (the per-step cost of `select_action`). `scores.py` defines them."""
+        rate (the per-step cost of `select_action`). `scores.py` defines them. The token network also leaves
+        its rate map, (B, cameras, H', W'), for `last_step.rate_map`."""
         network = self.network
+        if self.config.encoder == "tokens":
+            posterior = network.encode(batch)
+            token_rates = network.token_rates(posterior)
+            self._rate_map = network.rate_map(token_rates)
+            cell_mean, cell_std = self.map_cell_mean, self.map_cell_std
+            scores = token_scores(token_rates, network.n_1d_tokens, cell_mean, cell_std, self.config.map_top_k)
+            if self.embedding_rnd.fitted and wanted in (None, "embedding_rnd"):
+                scores["embedding_rnd"] = self.embedding_rnd.error(network.embedding(posterior))
+            return posterior, scores
+        self._rate_map = None
         parts = network.encoder.parts(batch)
         posterior = network.posterior_of(parts.fused)
         scores = {"rate": network.bottleneck.rate(posterior)}

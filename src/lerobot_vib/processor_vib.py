@@ -8,7 +8,7 @@ from typing import Any
 import torch
 from lerobot.processor import PolicyAction, PolicyProcessorPipeline, make_default_pre_post_processors
 
-from .configuration_vib import VIBConfig
+from .configuration_vib import FLOORED_TYPES, VIBConfig
 from .normalization import floor_stats, warn_near_constant
 
 
@@ -18,6 +18,8 @@ def vib_dataset_stats(config: VIBConfig, dataset_stats: dict | None, context: st
     if dataset_stats is None or config.normalization_floor is None:
         return dataset_stats
     features = {**(config.input_features or {}), **(config.output_features or {})}
+    floored_types = FLOORED_TYPES[config.normalization_floor_features]
+    features = {key: ft for key, ft in features.items() if ft.type in floored_types}
     stats, changed = floor_stats(dataset_stats, features, config.normalization_mapping, config.normalization_floor)
     if context:
         warn_near_constant(changed, context)

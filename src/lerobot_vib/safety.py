@@ -30,6 +30,11 @@ from lerobot.utils.constants import ACTION, OBS_STATE
 from torch import Tensor, nn
 
 
+class NothingSafeToHoldError(RuntimeError):
+    """The stop fired at an episode's first step and there is no action it can hold: nothing was commanded yet
+    and the measured pose is missing or not finite. A command line shows it as one line (cli_errors.py)."""
+
+
 @dataclass
 class SafetyStep:
     """What one step of the monitor decided, per batch element."""
@@ -137,9 +142,15 @@ class SafetyMonitor:
         self._grace = torch.where(mask, torch.full_like(self._grace, grace_steps), self._grace)
         return resumed
 
-    def set_threshold(self, gamma: float, resume_threshold: float | None = None) -> None:
-        """Change the thresholds from this step on (a time-indexed band moves them every step)."""
-        resume_threshold = gamma if resume_threshold is None else min(resume_threshold, gamma)
+    def set_threshold(self, gamma: float | Tensor, resume_threshold: float | None = None) -> None:
+        """Change the thresholds from this step on (a time-indexed band moves them every step); `gamma` may be
+        one per env, (B,), where each env reads the band at its own progress."""
+        if resume_threshold is None:
+            resume_threshold = gamma
+        elif isinstance(gamma, Tensor):
+            resume_threshold = gamma.clamp(max=resume_threshold)
+        else:
+            resume_threshold = min(resume_threshold, gamma)
         self.gamma, self.resume_threshold = gamma, resume_threshold
 
     def force_stop(self, mask: Tensor) -> None:
@@ -177,7 +188,15 @@ class SafetyAction:
         if reference is None:
             if self.mode == "hold" and self.home is not None:
                 return self.home.expand(batch_size, -1).clone()
-            raise RuntimeError(
+            if fallback is not None:  # a pose was measured, but it is NaN or inf: say so, that is the cause
+                bad = sorted({int(i) for i in torch.nonzero(~torch.isfinite(fallback))[:, 0]})
+                raise NothingSafeToHoldError(
+                    f"Safety stop at the first step: the measured pose (observation.state) is not finite (NaN or "
+                    f"inf) in env{'s' if len(bad) > 1 else ''} {', '.join(map(str, bad))}, and no action has been "
+                    "commanded yet, so there is nothing safe to hold. Check the robot's joint readings; "
+                    "`safety.home_pose` gives the stop a pose to hold when the readings cannot be trusted."
+                )
+            raise NothingSafeToHoldError(
                 "Safety stop at the first step with no commanded action and no measured pose to start from: "
                 + ("configure `safety.home_pose`." if self.mode == "hold" else "cannot go home in bounded steps.")
             )
@@ -284,6 +303,8 @@ class PolicySafetyAction:
         home = None
         if self.home_pose is not None:
             home = torch.tensor(self.home_pose, dtype=torch.float32, device=device)
+        if last is None and home is None and state is not None and not torch.isfinite(state).all():
+            measured = state  # not a pose to hold, but what SafetyAction names as the cause
         action = SafetyAction(self.mode, home, self.max_step)(last, measured, batch_size)
         if going_home and self.mode == "hold":
             homeward = SafetyAction("home", home, self.max_step)(action, None, batch_size)

@@ -33,11 +33,45 @@ from collections.abc import Iterable
 
 import torch
 from torch import Tensor, nn
+from tqdm import tqdm
 
 from .bottleneck import Posterior
 
-SCORES = ("rate", "image_rate", "low_image_rate", "embedding_rnd", "chunk_disagreement")
+SCORES = ("rate", "image_rate", "low_image_rate", "embedding_rnd", "chunk_disagreement", "state_rate", "map_score")
+# Scores only the token network (`--policy.encoder=tokens`) has: its rates are per token.
+TOKEN_SCORES = ("state_rate", "map_score")
 RND_INPUTS = ("fused", "pooled")
+
+
+def map_score(cell_rates: Tensor, cell_mean: Tensor, cell_std: Tensor, top_k: int = 1) -> Tensor:
+    """The token network's map score (B,): each image cell's rate as a z-score against that cell's training
+    statistics, reduced by the mean of the `top_k` largest (1: the maximum). A cell that shows what it never
+    showed in training stands out even when the image's mean rate does not move."""
+    z = (cell_rates - cell_mean.to(cell_rates)) / cell_std.to(cell_rates).clamp_min(1e-6)
+    return z.topk(min(top_k, z.shape[1]), dim=1).values.mean(dim=1)
+
+
+def token_scores(
+    token_rates: Tensor, n_1d_tokens: int, cell_mean: Tensor | None, cell_std: Tensor | None, top_k: int = 1
+) -> dict[str, Tensor]:
+    """The token network's rate-based scores, each (B,), from its per-token rates (B, N) (1D tokens first):
+
+    rate            mean over all tokens (the paper's R)
+    image_rate      mean over the image cells, exactly: no counterfactual state is needed
+    low_image_rate  1 / image_rate
+    state_rate      mean over the state tokens
+    map_score       `map_score` over the cells, once their training statistics are known (calibration)
+    """
+    scores = {"rate": token_rates.mean(dim=1)}
+    cells = token_rates[:, n_1d_tokens:]
+    if cells.shape[1]:
+        scores["image_rate"] = cells.mean(dim=1)
+        scores["low_image_rate"] = 1.0 / scores["image_rate"]
+        if cell_mean is not None and torch.isfinite(cell_mean).all() and torch.isfinite(cell_std).all():
+            scores["map_score"] = map_score(cells, cell_mean, cell_std, top_k)
+    if n_1d_tokens:
+        scores["state_rate"] = token_rates[:, :n_1d_tokens].mean(dim=1)
+    return scores
 
 
 def rate_terms(posterior: Posterior, marginal_mean: Tensor, marginal_logvar: Tensor) -> tuple[Tensor, Tensor]:
@@ -82,10 +116,16 @@ class EmbeddingRND(nn.Module):
 
 
 def fit_embedding_rnd(
-    rnd: EmbeddingRND, embeddings: Tensor, steps: int = 3000, batch_size: int = 256, lr: float = 1e-3, seed: int = 0
+    rnd: EmbeddingRND,
+    embeddings: Tensor,
+    steps: int = 3000,
+    batch_size: int = 256,
+    lr: float = 1e-3,
+    seed: int = 0,
+    progress: bool = False,
 ) -> list[float]:
     """Fit the predictor to the target on the training frames' embeddings (N, D), then set e's statistics
-    over all of them (eval mode). Returns the loss per step."""
+    over all of them (eval mode). Returns the loss per step; `progress` shows a bar (minutes on a CPU)."""
     if embeddings.ndim != 2 or embeddings.shape[0] < 2:
         raise ValueError(f"Need (N >= 2, D) training embeddings, got {tuple(embeddings.shape)}.")
     if not torch.isfinite(embeddings).all():
@@ -101,7 +141,7 @@ def fit_embedding_rnd(
     losses = []
     rnd.train()
     try:
-        for _ in range(steps):
+        for _ in tqdm(range(steps), desc="fitting the RND score", unit="step", disable=not progress):
             idx = torch.randint(0, embeddings.shape[0], (min(batch_size, embeddings.shape[0]),), generator=generator)
             loss = rnd.error(embeddings[idx]).mean()
             optimizer.zero_grad()

@@ -31,6 +31,12 @@ ACT's ensembling at some m) is chosen per trained network on validation episodes
     act_like_vib   act_like_vib   VIB's trunk (group norm, cut after layer2), weight average, normalization floor
     vib_beta0      vib_beta0      VIB's architecture (state tokens, posterior heads), no pressure on the rate
     vib_chosen     vib            the bottleneck: beta of the preset
+
+The token comparison (`TOKEN_COMPARISON`, `--variants='[tokens]'`) puts the bottleneck on ACT's own token
+memory instead (`--policy.encoder=tokens`, token_network.py), beside the same ACT rows and the pooled preset:
+
+    vib_tokens_beta0  vib_tokens_beta0  the token network with beta = 0
+    vib_tokens        vib_tokens        the token network with the preset's beta
 """
 
 from __future__ import annotations
@@ -60,6 +66,8 @@ NETWORKS: dict[str, str] = {
     "vib_beta0": "vib",  # the preset with beta = 0
     "act": "act",  # LeRobot's ACT with the preset's sizes and recipe
     "act_like_vib": "act",  # and VIB's trunk, weight average and normalization floor (baselines/)
+    "vib_tokens": "vib",  # the preset on the token network (`--policy.encoder=tokens`)
+    "vib_tokens_beta0": "vib",  # and with beta = 0
 }
 CHOSEN = "chosen"  # a row whose run time is chosen on validation episodes among the benchmark's `runtimes`
 
@@ -97,9 +105,12 @@ VARIANTS: dict[str, Variant] = {
     "act_like_vib": Variant("ACT + VIB's trunk, EMA, floor", "act_like_vib", CHOSEN, None),
     "vib_beta0": Variant("VIB, beta = 0", "vib_beta0", CHOSEN, "vib_beta0"),
     "vib_chosen": Variant("VIB (arm preset)", "vib", CHOSEN, "vib"),
+    "vib_tokens_beta0": Variant("VIB tokens, beta = 0", "vib_tokens_beta0", CHOSEN, "vib_tokens_beta0"),
+    "vib_tokens": Variant("VIB tokens (the preset's beta)", "vib_tokens", CHOSEN, "vib_tokens"),
 }
 TABLE_I = ("act", "act_te", "vib", "vib_queue", "act_u", "act_rnd", "vib_wo_u", "vib_rnd")
 COMPARISON = ("act_chosen", "act_like_vib", "vib_beta0", "vib_chosen")
+TOKEN_COMPARISON = ("act_chosen", "act_like_vib", "vib_tokens_beta0", "vib_tokens", "vib_chosen")
 _RUNTIME_MODES = {"queue": "none", "act": "act", "eq6": "uncertainty"}
 
 

@@ -30,6 +30,7 @@ on the simulated arm also camera_shake, unseen_block and occlusion (sim/perturba
 import contextlib
 import dataclasses
 import fcntl
+import hashlib
 import json
 import logging
 import os
@@ -63,7 +64,16 @@ from ..modeling_vib import VIBPolicy
 from ..rnd import RND, RNDConfig, train_rnd
 from ..sim import env_config  # noqa: F401  (registers --env.type=aloha_fast and vib_arm)
 from ..sim.perturbations import CONDITIONS, SCENE_CONDITIONS
-from ..variants import CHOSEN, COMPARISON, NETWORKS, VARIANTS, build_variant, parse_runtime, queue_steps
+from ..variants import (
+    CHOSEN,
+    COMPARISON,
+    NETWORKS,
+    TOKEN_COMPARISON,
+    VARIANTS,
+    build_variant,
+    parse_runtime,
+    queue_steps,
+)
 from .benchmark_report import write_report
 from .eval_uncertainty import UncertaintyCapture
 
@@ -130,7 +140,8 @@ class BenchmarkConfig:
     output_dir: Where checkpoints, cells, the report and the plots go; rerun the command to resume.
     profile: `cpu-small`, `gpu` or `paper` (PROFILES); the fields below left unset take the profile's value.
     variants: Rows (variants.VARIANTS); default the paper's Table I. `[comparison]` stands for the four rows
-        that separate the bottleneck from VIB's other choices (variants.COMPARISON).
+        that separate the bottleneck from VIB's other choices (variants.COMPARISON), `[tokens]` for the five
+        that put it on ACT's token memory (variants.TOKEN_COMPARISON).
     conditions: Default: normal, gaussian, color, and on the simulated arm camera_shake, unseen_block, occlusion.
     n_episodes: Test episodes per cell for VIB (Eq. 6), ACT and the comparison rows, and for every row on the
         normal condition.
@@ -199,8 +210,12 @@ class BenchmarkConfig:
             self.preset = CONFIGS / name
         if self.variants == ["comparison"]:
             self.variants = list(COMPARISON)
+        elif self.variants == ["tokens"]:
+            self.variants = list(TOKEN_COMPARISON)
         if unknown := sorted(set(self.variants) - set(VARIANTS)):
-            raise VIBConfigError(f"Unknown variants {unknown}; choose from {sorted(VARIANTS)} or [comparison].")
+            raise VIBConfigError(
+                f"Unknown variants {unknown}; choose from {sorted(VARIANTS)}, [comparison] or [tokens]."
+            )
         scene = getattr(self.env, "type", None) == "vib_arm"
         if self.conditions is None:
             self.conditions = [c for c in CONDITIONS if scene or c not in SCENE_CONDITIONS]
@@ -268,7 +283,7 @@ class BenchmarkConfig:
     def episodes(self, variant: str, condition: str) -> int:
         if condition == VALIDATION:
             return self.validation_episodes
-        if variant in COMPARISON:  # the claim's rows: the most episodes where the claim is made
+        if variant in COMPARISON or variant in TOKEN_COMPARISON:  # the claims' rows: the most episodes
             return self.n_episodes if condition == "normal" else self.n_episodes_other
         return self.n_episodes if variant in MAIN_VARIANTS else self.n_episodes_other
 
@@ -308,6 +323,9 @@ def train_command(network: str, cfg: BenchmarkConfig, out: Path, seed: int) -> l
         return [_bin("lerobot-train"), f"--config_path={cfg.preset}", *common]
     if network == "vib_beta0":
         return [_bin("lerobot-train"), f"--config_path={cfg.preset}", "--policy.beta=0", *common]
+    if network in ("vib_tokens", "vib_tokens_beta0"):
+        beta = ["--policy.beta=0"] if network == "vib_tokens_beta0" else []
+        return [_bin("lerobot-train"), f"--config_path={cfg.preset}", "--policy.encoder=tokens", *beta, *common]
     if network not in ("act", "act_like_vib"):
         raise ValueError(f"Unknown network {network!r}; choose from {list(NETWORKS)}.")
     preset = json.loads(cfg.preset.read_text())
@@ -579,7 +597,7 @@ def run_benchmark(cfg: BenchmarkConfig, report_only: bool = False) -> dict | Non
         path = cell_path(cfg, *cell)
         if path.exists():
             cells[cell] = json.loads(path.read_text())
-    return write_report(cfg, cells, WallClock.total(cfg.output_dir / "wall_time.json"))
+    return write_report(cfg, cells, WallClock.total(cfg.output_dir / "wall_time.json"), planned=len(planned_cells(cfg)))
 
 
 def _run_cells(cfg: BenchmarkConfig, clock: "WallClock") -> None:
@@ -667,11 +685,47 @@ RESUME_KEYS = (
 )  # fmt: skip
 
 
+def checkpoint_fingerprint(path: Path) -> str:
+    """SHA-256 over a checkpoint folder's top-level files (config, weights, processors and their statistics):
+    a checkpoint recalibrated or retrained in place under the same path gets another fingerprint."""
+    digest = hashlib.sha256()
+    for file in sorted(p for p in Path(path).iterdir() if p.is_file() and p.suffix in (".json", ".safetensors")):
+        digest.update(file.name.encode() + b"\0")
+        with file.open("rb") as f:
+            for block in iter(lambda: f.read(1 << 20), b""):
+                digest.update(block)
+    return digest.hexdigest()
+
+
+def _given_fingerprints(cfg: BenchmarkConfig) -> dict[str, str]:
+    return {
+        f"{network}_checkpoint": checkpoint_fingerprint(Path(given))
+        for network in ("vib", "act")
+        if (given := given_checkpoint(network, cfg)) is not None
+    }
+
+
 def check_resumable(cfg: BenchmarkConfig) -> None:
-    """Refuse to resume into an output dir whose saved cells came from other settings or other seeds."""
+    """Refuse to resume into an output dir whose saved cells came from other settings, other seeds, or a given
+    checkpoint that changed since (same path, other config or weights)."""
     path = cfg.output_dir / "config.json"
     if path.exists():
         saved, now = json.loads(path.read_text()), _config_record(cfg)
+        before = saved.get("checkpoint_fingerprints")
+        for name, fingerprint in now["checkpoint_fingerprints"].items():
+            if before is None and saved.get(name):
+                raise VIBConfigError(
+                    f"{cfg.output_dir} was evaluated with --{name} before checkpoints were fingerprinted, so whether "
+                    f"{_portable(getattr(cfg, name))} is still that checkpoint cannot be told: use another "
+                    "--output_dir."
+                )
+            if (before or {}).get(name, fingerprint) != fingerprint:
+                raise VIBConfigError(
+                    f"--{name}={_portable(getattr(cfg, name))} is not the checkpoint {cfg.output_dir}'s cells were "
+                    "evaluated with: its config or weights changed since (recalibrated or retrained in place), so "
+                    "its thresholds and u would mix with the saved ones. Use another --output_dir, or a copy of the "
+                    "checkpoint as it was."
+                )
         if changed := [k for k in RESUME_KEYS if saved.get(k) != now.get(k)]:
             raise VIBConfigError(
                 f"{cfg.output_dir} holds a benchmark run with other {', '.join(changed)}; its cells would mix with "
@@ -790,6 +844,7 @@ def _config_record(cfg: BenchmarkConfig) -> dict:
     record["preset"] = _portable(cfg.preset)
     record["env_type"] = cfg.env.type
     record["command"] = " ".join(["lerobot-vib-benchmark", *sys.argv[1:]])
+    record["checkpoint_fingerprints"] = _given_fingerprints(cfg)
     record["machine"] = {"platform": platform.platform(), "processor": platform.processor(), "cpus": os.cpu_count()}
     return record
 

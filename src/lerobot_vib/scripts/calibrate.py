@@ -53,9 +53,10 @@ from ..calibration import (
 )
 from ..configuration_vib import CalibrationConfig, VIBConfigError
 from ..metrics import time_indexed_band
-from ..modeling_vib import VIBPolicy
+from ..modeling_vib import EncoderParts, VIBPolicy
 from ..processor_vib import vib_dataset_stats
-from ..scores import episode_disagreement, fit_embedding_rnd, score_statistics
+from ..provenance import dataset_mismatches, rollout_env_problems, training_recording
+from ..scores import episode_disagreement, fit_embedding_rnd, score_statistics, token_scores
 
 logger = logging.getLogger(__name__)
 
@@ -95,6 +96,10 @@ class CalibrateConfig:
         checkpoint). An existing folder is only written if it is a calibrated checkpoint itself.
     in_place: Write the calibration into the checkpoint itself (`config.json` and `train_config.json`, so that
         `lerobot-train --resume=true` keeps it) instead of a new folder.
+    push_to_hub: Push the calibrated checkpoint to the Hub under `repo_id` when it is written: the weights, the
+        config with its calibration, the processors and a model card that states the calibration and the
+        success measured on the rollouts (`lerobot-train` pushes the uncalibrated model).
+    repo_id: The Hub repository to push to (`user/name`).
     """
 
     dataset: CalibrationDataset | None = None
@@ -109,9 +114,19 @@ class CalibrateConfig:
     threshold: str | None = None
     output_dir: Path | None = None
     in_place: bool = False
+    push_to_hub: bool = False
+    repo_id: str | None = None
 
     def __post_init__(self):
         # Arguments first: nothing below may cost minutes before a typo is reported.
+        if self.push_to_hub:
+            if not self.repo_id or self.repo_id.count("/") != 1:
+                raise VIBConfigError(f"`--push_to_hub=true` needs `--repo_id=user/name`, got {self.repo_id!r}.")
+            if huggingface_hub.constants.HF_HUB_OFFLINE:
+                raise VIBConfigError(
+                    "`--push_to_hub=true`, but the Hub is offline (HF_HUB_OFFLINE): calibrate without it, and push "
+                    "later with the same command online (`--rollouts=...` again, or the last step you ran)."
+                )
         if self.rollouts is not None:
             if self.dataset is not None or self.episodes is not None or self.conformal_episodes is not None:
                 raise VIBConfigError(
@@ -246,19 +261,30 @@ class FrameRecords:
     state: torch.Tensor | None  # (N, K * d_token) the state path
     rnd_input: torch.Tensor  # (N, D) the embedding "embedding_rnd" reads
     chunks: torch.Tensor  # (N, chunk_size, A) the chunk decoded at each frame
+    token_rates: torch.Tensor | None = None  # (N, tokens) the token network's per-token rates
 
     def fit(self, policy: VIBPolicy, rnd_steps: int = 3000) -> None:
-        """Fit the scores' parts on these (training) frames: the state path's mean and the RND."""
-        if self.state is not None:
+        """Fit the scores' parts on these (training) frames: the pooled network's state-path mean or the token
+        network's per-cell rate statistics, and the RND."""
+        if self.token_rates is not None:
+            cells = self.token_rates[:, policy.network.n_1d_tokens :]
+            if cells.shape[1]:
+                policy.map_cell_mean.copy_(cells.mean(0))
+                policy.map_cell_std.copy_(cells.std(0) if len(cells) > 1 else torch.ones(cells.shape[1]))
+        elif self.state is not None:
             policy.state_embedding_mean.copy_(self.state.mean(0))
-        fit_embedding_rnd(policy.embedding_rnd, self.rnd_input, steps=rnd_steps)
+        fit_embedding_rnd(policy.embedding_rnd, self.rnd_input, steps=rnd_steps, progress=True)
 
     @torch.no_grad()
     def scores(self, policy: VIBPolicy) -> dict[str, torch.Tensor]:
         """Every score that `policy` can compute, per frame (float64)."""
         network = policy.network
         out = {"rate": self.rate}
-        if self.image is not None:
+        if self.token_rates is not None:
+            cell_mean, cell_std = policy.map_cell_mean, policy.map_cell_std
+            rates = self.token_rates.double()
+            out.update(token_scores(rates, network.n_1d_tokens, cell_mean, cell_std, policy.config.map_top_k))
+        elif self.image is not None:
             if self.state is None:
                 out["image_rate"] = self.rate
             elif torch.isfinite(policy.state_embedding_mean).all():
@@ -285,15 +311,23 @@ def record_frames(policy: VIBPolicy, preprocessor, batches) -> FrameRecords:
     """Encode and decode every frame (eval mode, the acting weights)."""
     policy.eval()
     network = policy.network
+    tokens = policy.config.encoder == "tokens"
     keep: dict[str, list[torch.Tensor]] = {
-        k: [] for k in ("episode", "frame", "rate", "image", "state", "rnd", "chunk")
+        k: [] for k in ("episode", "frame", "rate", "image", "state", "rnd", "chunk", "token_rates")
     }
     for batch in batches:
         obs = preprocessor({k: v for k, v in batch.items() if k.startswith("observation")})
         policy._check_observation(obs)
-        parts = network.encoder.parts(obs)
-        posterior = network.posterior_of(parts.fused)
-        rate = network.bottleneck.rate(posterior)
+        if tokens:
+            posterior = network.encode(obs)
+            token_rates = network.token_rates(posterior)
+            rate = token_rates.mean(dim=1)
+            parts = EncoderParts(image=None, state=None, pooled=None)
+        else:
+            parts = network.encoder.parts(obs)
+            posterior = network.posterior_of(parts.fused)
+            rate = network.bottleneck.rate(posterior)
+            token_rates = None
         if not torch.isfinite(rate).all():
             raise ValueError(
                 "Non-finite rate on calibration frames (episodes "
@@ -304,15 +338,19 @@ def record_frames(policy: VIBPolicy, preprocessor, batches) -> FrameRecords:
         keep["rate"].append(rate.double().cpu())
         keep["image"].append(None if parts.image is None else parts.image.cpu())
         keep["state"].append(None if parts.state is None else parts.state.cpu())
-        keep["rnd"].append(policy.rnd_embedding(parts, obs).cpu())
-        keep["chunk"].append(network.decoder(posterior.mean).cpu())
+        keep["rnd"].append((network.embedding(posterior) if tokens else policy.rnd_embedding(parts, obs)).cpu())
+        keep["chunk"].append(network.decode(posterior.mean).cpu())
+        keep["token_rates"].append(None if token_rates is None else token_rates.cpu())
     if not keep["rate"]:
         raise ValueError("No frames to calibrate on.")
 
     def cat(name: str) -> torch.Tensor | None:
         return None if keep[name][0] is None else torch.cat(keep[name])
 
-    return FrameRecords(cat("episode"), cat("frame"), cat("rate"), cat("image"), cat("state"), cat("rnd"), cat("chunk"))
+    return FrameRecords(
+        cat("episode"), cat("frame"), cat("rate"), cat("image"), cat("state"), cat("rnd"), cat("chunk"),
+        token_rates=cat("token_rates"),
+    )  # fmt: skip
 
 
 def _episode_max(values: torch.Tensor, episode_index: torch.Tensor, scale: float) -> torch.Tensor:
@@ -387,11 +425,17 @@ def gamma_from_rollouts(
     expected_score: str = "rate",
     threshold: str = "max",
     traces: list[np.ndarray] | None = None,
+    policy_config: PreTrainedConfig | None = None,
+    recording: dict | None = None,
 ) -> CalibrationConfig:
     """`calibration` with gamma = the split-conformal threshold on clean rollouts' per-episode max u of the
     score the checkpoint reads u from (`expected_score`); with `threshold="time_band"`, the time-indexed band
     from the rollouts' per-step u `traces` (metrics.time_indexed_band: the first half of the rollouts sets the
-    band's shape, the second half its conformal level)."""
+    band's shape, the second half its conformal level).
+
+    Refused unless the rollouts are clean ones of this checkpoint: the stop off, no perturbation, the env's
+    cameras and image size those of `policy_config`, its task and workspace those of the training `recording`
+    (provenance.py), u normalized as this checkpoint normalizes it."""
     if calibration.rate_mean is None:
         raise VIBConfigError(
             "The checkpoint has no R_bar: calibrate it on its dataset first, evaluate that checkpoint, then use "
@@ -401,6 +445,12 @@ def gamma_from_rollouts(
         raise VIBConfigError(
             f"{source} was evaluated with the safety stop on, so its episodes are not clean rollouts: evaluate "
             "with `--policy.safety.enabled=false`."
+        )
+    if problems := rollout_env_problems(info, policy_config, recording):
+        raise VIBConfigError(
+            f"{source} holds no clean rollouts of this checkpoint: {'; '.join(problems)}. A threshold is set on "
+            "clean rollouts in the env the policy was trained for: evaluate it there with lerobot-vib-eval "
+            "(no --env.perturbation.*, --env.dataset_root=<its training data>) and calibrate on those."
         )
     score = info.get("score") or "rate"
     if score != expected_score:
@@ -472,6 +522,11 @@ def calibrate_main(cfg: CalibrateConfig) -> CalibrationConfig:
     if cfg.rollouts is not None:
         return _calibrate_on_rollouts(cfg)
     meta = LeRobotDatasetMetadata(cfg.dataset.repo_id, root=cfg.dataset.root, revision=cfg.dataset.revision)
+    if problems := dataset_mismatches(cfg.policy, meta.features):
+        raise VIBConfigError(
+            f"{cfg.dataset.repo_id} is not data this policy reads: it has {'; '.join(problems)}. Calibrate on the "
+            "policy's training data, or data recorded with the same cameras and image size."
+        )
     check_episodes(meta.total_episodes, episodes=cfg.episodes, conformal_episodes=cfg.conformal_episodes)
     vib_dataset_stats(cfg.policy, meta.stats, context=f"lerobot-vib-calibrate, {cfg.dataset.repo_id}")
     source = Path(cfg.policy.pretrained_path)
@@ -493,6 +548,8 @@ def calibrate_main(cfg: CalibrateConfig) -> CalibrationConfig:
         rnd_steps=cfg.rnd_steps,
     )
     _write(policy, preprocessor, calibration, source, output_dir)
+    if cfg.push_to_hub:
+        push_calibrated(output_dir, cfg.repo_id)
     quantiles = ", ".join(f"q{k}={v:.4g}" for k, v in calibration.rate_quantiles.items())
     print(
         f"Calibrated {output_dir} on {calibration.n_frames} frames of {len(calibration.episodes)} episodes of "
@@ -533,10 +590,14 @@ def _calibrate_on_rollouts(cfg: CalibrateConfig) -> CalibrationConfig:
         cfg.policy.uncertainty_score,
         threshold=cfg.threshold,
         traces=traces,
+        policy_config=cfg.policy,
+        recording=recorded[1] if (recorded := training_recording(source)) else None,
     )
     policy = VIBPolicy.from_pretrained(source, config=cfg.policy)
     preprocessor, _ = make_pre_post_processors(policy.config, pretrained_path=str(source))
     _write(policy, preprocessor, calibration, source, output_dir)
+    if cfg.push_to_hub:
+        push_calibrated(output_dir, cfg.repo_id)
     print(
         f"Calibrated {output_dir}: gamma={calibration.gamma:.4f} "
         + (
@@ -550,6 +611,22 @@ def _calibrate_on_rollouts(cfg: CalibrateConfig) -> CalibrationConfig:
         "is unchanged."
     )
     return calibration
+
+
+def push_calibrated(checkpoint: Path, repo_id: str) -> None:
+    """Push a calibrated checkpoint folder to the Hub as LeRobot pushes a trained one: weights, config (with the
+    calibration), train config, model card, processors."""
+    from lerobot.configs.train import TrainPipelineConfig
+
+    if not (checkpoint / "train_config.json").is_file():
+        raise VIBConfigError(f"{checkpoint} has no train_config.json, which LeRobot's Hub push writes with the model.")
+    policy = VIBPolicy.from_pretrained(checkpoint)
+    policy.config.repo_id = repo_id
+    policy.push_model_to_hub(TrainPipelineConfig.from_pretrained(checkpoint))
+    preprocessor, postprocessor = make_pre_post_processors(policy.config, pretrained_path=str(checkpoint))
+    preprocessor.push_to_hub(repo_id)
+    postprocessor.push_to_hub(repo_id)
+    print(f"Pushed {checkpoint} to https://huggingface.co/{repo_id}")
 
 
 def _write(policy: VIBPolicy, preprocessor, calibration: CalibrationConfig, source: Path, output_dir: Path) -> None:

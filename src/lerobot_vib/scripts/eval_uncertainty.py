@@ -10,16 +10,25 @@ and `eval_info.json`). Beside `eval_info.json` it writes
                          the steps at which the safety stop fired, how many steps it held and the step at
                          which it became terminal (`halted_at`, safety.max_hold_steps); then the same
                          summed up over all episodes, and over successes and failures apart; and R_bar,
-                         the mean rate u was normalized by (`lerobot-vib-calibrate --rollouts` checks it)
-  uncertainty_trace.csv  one row per step of every episode: episode, seed, step, rate, u, stopped, just_stopped
+                         the mean rate u was normalized by (`lerobot-vib-calibrate --rollouts` checks it);
+                         and the env the rollouts ran in (`env`: type, task, workspace, episode length, image
+                         size, cameras, perturbation), which `--rollouts` calibration also checks
+  uncertainty_trace.csv  one row per step of every episode: episode, seed, step, rate, u, stopped, just_stopped,
+                         and threshold, the stop threshold gamma at that step (a time-indexed band moves it;
+                         it stops the policy only with the stop on, `safety_enabled` in uncertainty_info.json)
 
 Every `select_action` of a VIB policy leaves the step's rate, u and stop decision per env in
 `policy.last_step`; this command keeps them while LeRobot's `rollout` runs a batch of envs, then cuts each
 env's record at the end of its episode with the rollout's own `done` flags, as LeRobot cuts its rewards.
 Steps that an env spends waiting for the rest of its batch are not counted.
+
+The env must show the policy what it was trained on: an env given no `--env.dataset_root` takes the settings of
+the checkpoint's training recording where its `train_config.json` names one, and cameras, image size, task or
+workspace that differ from the checkpoint's are refused by name before any episode runs (provenance.py).
 """
 
 import csv
+import dataclasses
 import json
 import logging
 import math
@@ -38,10 +47,12 @@ from lerobot.utils.import_utils import register_third_party_plugins
 from lerobot.utils.utils import init_logging
 
 from ..configuration_vib import VIBConfigError
+from ..provenance import env_record, input_mismatches, recording_mismatches, training_recording
+from ..safety import NothingSafeToHoldError
 
 logger = logging.getLogger(__name__)
 
-TRACE_FIELDS = ("episode", "seed", "step", "rate", "u", "stopped", "just_stopped")
+TRACE_FIELDS = ("episode", "seed", "step", "rate", "u", "stopped", "just_stopped", "threshold")
 
 
 class UncertaintyCapture:
@@ -84,6 +95,7 @@ class UncertaintyCapture:
                         "just_stopped": s.just_stopped.cpu().numpy(),
                         "halted": (s.halted if s.halted is not None else s.stopped & False).cpu().numpy(),
                         "gamma": s.gamma,
+                        "thresholds": None if s.thresholds is None else s.thresholds.float().cpu().numpy(),
                         "safety": s.threshold_active,
                     }
                 )
@@ -118,6 +130,10 @@ class UncertaintyCapture:
                         for key in ("rate", "u", "stopped", "just_stopped")
                     },
                     "halted": np.array([s.get("halted", np.zeros(done.shape[0], dtype=bool))[i] for s in steps[:n]]),
+                    "threshold": np.array(
+                        [s["gamma"] if s.get("thresholds") is None else s["thresholds"][i] for s in steps[:n]],
+                        dtype=float,
+                    ),
                 }
             )
 
@@ -222,6 +238,7 @@ def write_trace(episodes: list[dict[str, Any]], path: Path) -> None:
                         f"{ep['u'][t]:.6g}",
                         int(ep["stopped"][t]),
                         int(ep["just_stopped"][t]),
+                        f"{ep['threshold'][t]:.6g}" if "threshold" in ep else "",
                     ]
                 )
 
@@ -237,6 +254,32 @@ def check(cfg: EvalPipelineConfig) -> None:
             "lerobot-vib-eval matches episodes to eval_info.json in order, so tasks must run one after another: "
             "set --env.max_parallel_tasks=1."
         )
+    use_training_recording(cfg)
+    record = env_record(cfg.env)
+    if problems := input_mismatches(record, cfg.policy):
+        raise VIBConfigError(
+            f"--env.type={cfg.env.type} gives {' and '.join(problems)}: set --env.dataset_root=<the training "
+            "data> (or the env's image and camera flags) so that the env shows the policy what it was trained on."
+        )
+    recorded = training_recording(cfg.policy.pretrained_path) if cfg.policy.pretrained_path else None
+    if recorded is not None and (problems := recording_mismatches(record, recorded[1])):
+        raise VIBConfigError(
+            f"The env has {' and '.join(problems)}, recorded at {recorded[0]}: evaluate with "
+            f"--env.dataset_root={recorded[0]}, or drop the flags that contradict it."
+        )
+
+
+def use_training_recording(cfg: EvalPipelineConfig) -> None:
+    """An env that can take its settings from a recording (`--env.dataset_root`) and was given none takes the
+    checkpoint's training recording: a policy trained in the `near` workspace is evaluated there, not in the
+    env's default. A flag that contradicts the recording is refused by the env config itself."""
+    if not hasattr(cfg.env, "dataset_root") or cfg.env.dataset_root is not None or not cfg.policy.pretrained_path:
+        return
+    recorded = training_recording(cfg.policy.pretrained_path)
+    if recorded is None or recording_mismatches({"type": cfg.env.type, "task": None}, recorded[1]):
+        return
+    cfg.env = dataclasses.replace(cfg.env, dataset_root=str(recorded[0]))
+    logger.info("The env takes the settings of the policy's training recording at %s.", recorded[0])
 
 
 @parser.wrap()
@@ -248,6 +291,9 @@ def eval_with_uncertainty(cfg: EvalPipelineConfig) -> dict:
     episodes = record.kept(cfg.eval.n_episodes, cfg.eval.batch_size)
     info = summarize(episodes, json.loads((out / "eval_info.json").read_text()))
     info["command"] = " ".join(["lerobot-vib-eval", *sys.argv[1:]])  # the model card cites it
+    # What the rollouts ran in: `lerobot-vib-calibrate --rollouts` sets a threshold on clean ones of this policy.
+    info["env"] = env_record(cfg.env)
+    info["policy_path"] = str(cfg.policy.pretrained_path) if cfg.policy.pretrained_path else None
     (out / "uncertainty_info.json").write_text(json.dumps(info, indent=2))
     write_trace(episodes, out / "uncertainty_trace.csv")
     o = info["overall"]
@@ -270,7 +316,7 @@ def main() -> None:
     register_third_party_plugins()
     try:
         eval_with_uncertainty()
-    except VIBConfigError as e:
+    except (VIBConfigError, NothingSafeToHoldError) as e:
         raise SystemExit(f"lerobot-vib-eval: {e}") from None
 
 

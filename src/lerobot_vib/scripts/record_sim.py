@@ -12,6 +12,7 @@ import json
 import logging
 import os
 import sys
+import tempfile
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -79,9 +80,16 @@ class RecordSimConfig:
         if self.image_width is None:
             self.image_width = task.default_size[1]
         self.cameras = list(task.default_cameras if self.cameras is None else self.cameras)
+        task.check_cameras(self.cameras)
         self.workspace = task.check_workspace(self.workspace)
         if self.root is None:
             self.root = HF_LEROBOT_HOME / self.repo_id
+        if self.overwrite and self.resume:
+            raise ValueError(
+                "Choose one of `--overwrite=true` (delete the dataset and start over) and `--resume=true` (add "
+                "episodes to it)."
+            )
+        _check_writable(Path(self.root))
         if self.num_episodes < 1:
             raise ValueError(f"`num_episodes` must be >= 1, got {self.num_episodes}.")
         if self.image_height < 1 or self.image_width < 1:
@@ -90,6 +98,25 @@ class RecordSimConfig:
             )
         if self.max_attempts is not None and self.max_attempts < 1:
             raise ValueError(f"`max_attempts` must be >= 1 (seeds to try in this run), got {self.max_attempts}.")
+
+
+def _check_writable(root: Path) -> None:
+    """`root` must be a folder, or a path where one can be made: refused before any episode is recorded."""
+    if root.exists():
+        if not root.is_dir():
+            raise ValueError(f"`--root={root}` is a file, not a folder: choose a folder for the dataset.")
+        return
+    parent = root.parent
+    while not parent.exists():
+        parent = parent.parent
+    if not parent.is_dir():
+        raise ValueError(f"`--root={root}` lies under {parent}, which is a file: choose a folder for the dataset.")
+    try:  # the only reliable test: make a folder there (and remove it)
+        os.rmdir(tempfile.mkdtemp(prefix=".lerobot-vib-check-", dir=parent))
+    except OSError as e:
+        raise ValueError(
+            f"`--root={root}`: cannot create a folder in {parent} ({e.strerror}); choose a writable location."
+        ) from None
 
 
 @parser.wrap()

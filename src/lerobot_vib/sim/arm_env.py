@@ -159,6 +159,12 @@ class ArmGraspEnv(gym.Env):
         self._occluder = m.body("occluder").mocapid[0]
 
     @property
+    def task(self) -> str:
+        """The task's name. LeRobot asks every env of a batch for `task` and `task_description`; in a batch of
+        subprocess envs a missing attribute shuts the workers down."""
+        return TASK
+
+    @property
     def task_description(self) -> str:
         return TASK_STRING
 

@@ -46,6 +46,7 @@ EPISODE_FILES = (  # an episode's own files: what an unfinished one can have lef
     "videos/*/chunk-*/file-*.mp4",
     "images/*/episode-*/frame-*.png",
 )
+STAGED_FRAMES = EPISODE_FILES[-1]  # LeRobot's PNG frames of an episode, before they are encoded
 RESTORED_FILES = ("meta/info.json", "meta/stats.json")  # rewritten by every save: restored, not size-checked
 LEROBOT_FILES = (*EPISODE_FILES, *RESTORED_FILES, "meta/tasks.parquet")
 # info.json keys that saving an episode changes; any other change is an edit made outside this command.
@@ -143,25 +144,70 @@ def _dataset_files(root: Path) -> dict[str, int]:
     return {rel: size for rel, size in _files_under(root).items() if _matches(rel, LEROBOT_FILES)}
 
 
-def _foreign_files(root: Path) -> list[str]:
-    """Files in LeRobot's folders of `root` that LeRobot does not write (a user's notes, labels, ...)."""
-    return sorted(rel for rel in _files_under(root) if not _matches(rel, LEROBOT_FILES))
+def _foreign_files(root: Path, log: RecordingLog | None = None) -> list[str]:
+    """Files in LeRobot's folders of `root` that LeRobot does not write (a user's notes, labels, ...), and with
+    the recording's `log`, staged frames that belong to none of its episodes."""
+    foreign = [rel for rel in _files_under(root) if not _matches(rel, LEROBOT_FILES)]
+    if log is not None and (log.committed_files or not log.episode_seeds):
+        foreign += _stray_frames(root, log)
+    return sorted(foreign)
 
 
-def _edited_info(root: Path, log: RecordingLog) -> list[str]:
-    """What changed in meta/info.json since the last saved episode, other than what saving an episode changes."""
-    saved = log.committed_meta.get("meta/info.json")
-    path = root / "meta/info.json"
+def _edited_json(root: Path, log: RecordingLog, rel: str, saving_changes: tuple[str, ...]) -> list[str]:
+    """What changed in the JSON file `rel` since the last saved episode, other than the keys that saving an
+    episode changes (`saving_changes`)."""
+    saved = log.committed_meta.get(rel)
+    path = root / rel
     if saved is None or not path.is_file():
         return []
     try:
         now = json.loads(path.read_text())
     except json.JSONDecodeError as e:
         return [f"it is not valid JSON ({e})"]
-    edits = [f"added `{k}`" for k in now if k not in saved and k not in EPISODE_INFO_KEYS]
-    edits += [f"removed `{k}`" for k in saved if k not in now and k not in EPISODE_INFO_KEYS]
-    edits += [f"changed `{k}`" for k in saved if k in now and now[k] != saved[k] and k not in EPISODE_INFO_KEYS]
+    edits = [f"added `{k}`" for k in now if k not in saved and k not in saving_changes]
+    edits += [f"removed `{k}`" for k in saved if k not in now and k not in saving_changes]
+    edits += [f"changed `{k}`" for k in saved if k in now and now[k] != saved[k] and k not in saving_changes]
     return edits
+
+
+def _edited_info(root: Path, log: RecordingLog) -> list[str]:
+    """What changed in meta/info.json since the last saved episode, other than what saving an episode changes."""
+    return _edited_json(root, log, "meta/info.json", EPISODE_INFO_KEYS)
+
+
+def _edited_stats(root: Path, log: RecordingLog) -> list[str]:
+    """What changed in meta/stats.json since the last saved episode, when no unfinished save explains it.
+
+    Saving an episode rewrites every statistic, so a change is LeRobot's only if an episode's save began after
+    the last commit (its files are there, uncommitted); otherwise someone edited the file."""
+    return [] if _unfinished_save(root, log) else _edited_json(root, log, "meta/stats.json", ())
+
+
+def _unfinished_save(root: Path, log: RecordingLog) -> bool:
+    """Whether LeRobot began saving an episode after the last commit: its data or episode metadata is there."""
+    saved_by_lerobot = ("data/chunk-*/file-*.parquet", "meta/episodes/chunk-*/file-*.parquet")
+    return any(rel not in log.committed_files and _matches(rel, saved_by_lerobot) for rel in _dataset_files(root))
+
+
+def _frame_episode(rel: str) -> int | None:
+    """The episode index of a staged frame, images/<camera>/episode-<index>/frame-<k>.png (None otherwise)."""
+    if not _matches(rel, (STAGED_FRAMES,)):
+        return None
+    try:
+        return int(rel.split("/")[2].removeprefix("episode-"))
+    except ValueError:
+        return None
+
+
+def _stray_frames(root: Path, log: RecordingLog) -> list[str]:
+    """Staged frames that are neither saved nor the unfinished episode's (whose index is the next to save):
+    not this recording's, so kept."""
+    unfinished = len(log.episode_seeds)
+    return sorted(
+        rel
+        for rel in _dataset_files(root)
+        if rel not in log.committed_files and (episode := _frame_episode(rel)) is not None and episode != unfinished
+    )
 
 
 def _commit(root: Path, log: RecordingLog) -> None:
@@ -201,7 +247,8 @@ def _adopt_uncommitted(root: Path, log: RecordingLog) -> None:
 def _rollback(root: Path, log: RecordingLog) -> list[str]:
     """Return the dataset to its state after the last saved episode: delete the files of an unfinished one,
     restore info.json and stats.json. Refuses, before touching anything, if a saved file changed or info.json
-    was edited. Files that LeRobot does not write are kept. Returns the deleted paths."""
+    or stats.json was edited. Files that LeRobot does not write, and staged frames of any other episode, are
+    kept. Returns the deleted paths."""
     changed = [
         rel
         for rel, size in log.committed_files.items()
@@ -212,17 +259,21 @@ def _rollback(root: Path, log: RecordingLog) -> list[str]:
             f"Cannot repair {root}: files of saved episodes are missing or changed since they were saved "
             f"({', '.join(changed[:5])}{' ...' if len(changed) > 5 else ''}). Record it again with `--overwrite=true`."
         )
-    edits = _edited_info(root, log)
-    if edits:
-        raise RecordingError(
-            f"Cannot resume {root}: meta/info.json was edited since the last saved episode ({'; '.join(edits)}), "
-            "and resuming restores it as it was then. Undo the edit (or keep an edited copy elsewhere) and resume "
-            "again. Nothing was changed."
-        )
+    for name, edits in (("info.json", _edited_info(root, log)), ("stats.json", _edited_stats(root, log))):
+        if edits:
+            raise RecordingError(
+                f"Cannot resume {root}: meta/{name} was edited since the last saved episode ({'; '.join(edits)}), "
+                "and resuming restores it as it was then. Undo the edit (or keep an edited copy elsewhere) and "
+                "resume again. Nothing was changed."
+            )
+    stray = set(_stray_frames(root, log))
     deleted = [
         rel
         for rel in _dataset_files(root)
-        if rel not in log.committed_files and rel not in RESTORED_FILES and _matches(rel, EPISODE_FILES)
+        if rel not in log.committed_files
+        and rel not in RESTORED_FILES
+        and rel not in stray
+        and _matches(rel, EPISODE_FILES)
     ]
     for rel in deleted:
         (root / rel).unlink()
@@ -340,7 +391,7 @@ def record_scripted_dataset(
             "(`--overwrite` deletes only such datasets). Choose another `--root`."
         )
     foreign = sorted(p.name for p in root.iterdir() if p.name not in DATASET_DIRS) if ours else []
-    foreign += _foreign_files(root) if ours else []
+    foreign += _foreign_files(root, RecordingLog.load(root)) if ours else []
     if foreign and (overwrite or not _saved_episodes(root)):
         raise RecordingError(
             f"{root} holds files that are not part of the dataset ({', '.join(foreign[:8])}"
@@ -363,12 +414,20 @@ def record_scripted_dataset(
             )
         if log.episode_seeds and not log.committed_files:
             _adopt_uncommitted(root, log)
+        unfinished = len(log.episode_seeds)
+        in_the_way = [rel for rel in _stray_frames(root, log) if unfinished < _frame_episode(rel) < num_episodes]
+        if in_the_way:  # LeRobot stages that episode's frames there, then deletes the folder
+            raise RecordingError(
+                f"Cannot resume {root}: {', '.join(in_the_way[:5])}{' ...' if len(in_the_way) > 5 else ''} lie where "
+                "this run will stage the frames of episodes it records, and would be overwritten. Move them "
+                "elsewhere and resume again. Nothing was changed."
+            )
         deleted = _rollback(root, log)
         if deleted:
-            logger.info("Dropped the unfinished episode of an interrupted run (%d files).", len(deleted))
-        kept = _foreign_files(root)
+            logger.info("Dropped the unfinished episode %d of an interrupted run (%d files).", unfinished, len(deleted))
+        kept = _foreign_files(root, log)
         if kept:
-            logger.info("Kept %d files that are not LeRobot's: %s", len(kept), ", ".join(kept[:8]))
+            logger.info("Kept %d files that are not part of the saved dataset: %s", len(kept), ", ".join(kept[:8]))
         if not log.episode_seeds:
             _delete_dataset(root)
     else:
