@@ -7,7 +7,7 @@ import torch
 from helpers import make_batch, make_config, with_rate_statistics
 from lerobot_vib.configuration_vib import SafetyConfig
 from lerobot_vib.modeling_vib import VIBPolicy
-from lerobot_vib.scores import SCORES, ChunkDisagreement, EmbeddingRND, fit_embedding_rnd, rate_terms
+from lerobot_vib.scores import SCORES, TOKEN_SCORES, ChunkDisagreement, EmbeddingRND, fit_embedding_rnd, rate_terms
 from lerobot_vib.scripts.calibrate import record_frames
 
 
@@ -100,7 +100,7 @@ def test_the_rnd_is_not_trained_by_the_policy_optimizer():
     assert not any(id(p) in optimized for p in policy.embedding_rnd.parameters())
 
 
-@pytest.mark.parametrize("score", SCORES)
+@pytest.mark.parametrize("score", [s for s in SCORES if s not in TOKEN_SCORES])  # tokens': test_token_network.py
 def test_a_checkpoint_round_trips_with_each_score(score, tmp_path):
     policy = calibrated_policy(make_config(uncertainty_score=score, chunk_size=4, n_action_steps=4))
     policy.save_pretrained(tmp_path)
@@ -162,26 +162,35 @@ def test_every_score_is_traced_when_asked():
     policy = calibrated_policy(make_config())
     policy.trace_all_scores = True
     _u(policy, make_batch(policy.config, with_action=False))
-    assert set(policy.last_step.scores) == set(SCORES)
+    assert set(policy.last_step.scores) == set(SCORES) - set(TOKEN_SCORES)  # the pooled network
 
 
-def test_a_time_indexed_band_moves_the_stop_threshold_with_the_episode_step():
+@pytest.mark.parametrize(
+    ("band_index", "gammas", "stopped"),
+    [
+        # read at the episode's step: the band moves on during the stop and releases it where it is high
+        ("episode_step", [100.0, 1e-6, 100.0, 100.0], [False, True, False, False]),
+        # read at the env's progress: it stands still while the env is stopped
+        ("progress", [100.0, 1e-6, 1e-6, 1e-6], [False, True, True, True]),
+    ],
+)
+def test_a_time_indexed_band_moves_the_stop_threshold_as_the_episode_runs(band_index, gammas, stopped):
     policy = calibrated_policy(
-        make_config(uncertainty_score="rate", safety=SafetyConfig(enabled=True, resume_steps=1)),
+        make_config(uncertainty_score="rate", safety=SafetyConfig(enabled=True, resume_steps=1, band_index=band_index)),
         gamma=100.0,
         gamma_band=[100.0, 1e-6, 100.0],
         gamma_score="rate",
     )
     policy.reset()
     batch = make_batch(policy.config, with_action=False)
-    stopped, gammas = [], []
+    seen_stopped, seen_gammas = [], []
     for _ in range(4):
         with torch.no_grad():
             policy.select_action(batch)
-        stopped.append(bool(policy.last_step.stopped[0]))
-        gammas.append(policy.last_step.gamma)
-    assert gammas == [100.0, 1e-6, 100.0, 100.0]  # the last value holds after the band ends
-    assert stopped == [False, True, False, False]  # stops where the band is low, resumes where it is high
+        seen_stopped.append(bool(policy.last_step.stopped[0]))
+        seen_gammas.append(policy.last_step.gamma)
+    assert seen_gammas == gammas  # the last value holds after the band ends
+    assert seen_stopped == stopped
 
 
 def test_a_band_is_set_from_rollouts_per_step_and_refuses_too_few():

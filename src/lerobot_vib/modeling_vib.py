@@ -602,7 +602,7 @@ class VIBPolicy(PreTrainedPolicy):
                 thresholds = torch.tensor(
                     [self.stop_threshold(int(p)) for p in self._progress], dtype=u.dtype, device=u.device
                 )
-                gamma = float(thresholds[0])
+                gamma = self.stop_threshold(int(self._progress[0]))  # env 0's, exactly as calibrated
                 self.runtime.monitor.set_threshold(thresholds, self.config.safety.resume_threshold)
             else:
                 self.runtime.monitor.set_threshold(gamma, self.config.safety.resume_threshold)

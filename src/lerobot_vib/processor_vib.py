@@ -18,7 +18,8 @@ def vib_dataset_stats(config: VIBConfig, dataset_stats: dict | None, context: st
     if dataset_stats is None or config.normalization_floor is None:
         return dataset_stats
     features = {**(config.input_features or {}), **(config.output_features or {})}
-    floored_types = FLOORED_TYPES[config.normalization_floor_features]
+    # ACT like VIB (baselines/) floors every feature, as the preset it copies
+    floored_types = FLOORED_TYPES[getattr(config, "normalization_floor_features", "all")]
     features = {key: ft for key, ft in features.items() if ft.type in floored_types}
     stats, changed = floor_stats(dataset_stats, features, config.normalization_mapping, config.normalization_floor)
     if context:
