@@ -150,6 +150,29 @@ def test_black_images_are_black():
     assert not _frames(PerturbationConfig(black_images=True))[0].any()
 
 
+def test_a_dim_camera_scales_every_pixel():
+    clean = _frames(PerturbationConfig())[0].astype(float)
+    dim = _frames(PerturbationConfig(dim=0.45))[0].astype(float)
+    np.testing.assert_allclose(dim, np.round(clean * 0.45), atol=1)
+
+
+def test_a_frozen_camera_repeats_its_frame_while_the_arm_moves():
+    def moving(perturbation):
+        env = ArmGraspEnv(observation_height=48, observation_width=64, perturbation=perturbation)
+        frames = [env.reset(seed=4)[0]["pixels"]["scene"]]
+        for t in range(6):
+            frames.append(env.step(np.append(HOME + 0.05 * (t + 1), 1.0))[0]["pixels"]["scene"])
+        env.close()
+        return frames
+
+    clean, frozen = moving(PerturbationConfig()), moving(PerturbationConfig(frozen_from=3))
+    for t in range(4):
+        np.testing.assert_array_equal(frozen[t], clean[t])
+    assert not np.array_equal(clean[3], clean[6])  # the arm moved in the scene camera's view
+    for t in range(4, 7):
+        np.testing.assert_array_equal(frozen[t], clean[3])
+
+
 def test_color_jitter_changes_colours_only_for_jittered_episodes():
     clean = _frames(PerturbationConfig())[0]
     jittered = _frames(PerturbationConfig(color_jitter=0.2, color_jitter_p=1.0))[0]
@@ -229,7 +252,9 @@ def test_aloha_env_takes_image_perturbations_and_refuses_scene_ones():
 
 
 def test_perturbation_config_refuses_bad_values():
-    for bad in (dict(noise_std=[]), dict(noise_std=[-0.1]), dict(color_jitter=0.9), dict(occlusion_duration=0)):
+    bad_values = (dict(noise_std=[]), dict(noise_std=[-0.1]), dict(color_jitter=0.9), dict(occlusion_duration=0),
+                  dict(dim=0.0), dict(dim=1.5), dict(frozen_from=-1))  # fmt: skip
+    for bad in bad_values:
         with pytest.raises(ValueError):
             PerturbationConfig(**bad)
 

@@ -46,6 +46,7 @@ def tiny_config(root: Path, out: Path, **overrides) -> BenchmarkConfig:
         steps=2,
         eval_batch_size=2,
         alpha=0.5,
+        rnd_steps=20,
     )
     return BenchmarkConfig(**{**fields, **overrides})
 
@@ -63,10 +64,12 @@ def test_tiny_benchmark_trains_evaluates_reports_and_resumes_without_repeating_a
     monkeypatch.setattr(benchmark, "run_cell", interrupted)
     with pytest.raises(KeyboardInterrupt):
         run_benchmark(cfg)
-    assert (
-        len(list((cfg.output_dir / "validation").rglob("*.json")) + list((cfg.output_dir / "cells").rglob("*.json")))
-        == 2
-    )
+    saved = [
+        p
+        for folder in ("validation", "validation_perturbed", "cells")
+        for p in (cfg.output_dir / folder).rglob("*.json")
+    ]
+    assert len(saved) == 2
     assert (cfg.output_dir / "train/vib/seed_1000/checkpoints/000002/pretrained_model").exists()
 
     first_run, ran[:] = list(ran), []
@@ -88,6 +91,15 @@ def test_tiny_benchmark_trains_evaluates_reports_and_resumes_without_repeating_a
     normal = {v: json.loads(cell_path(cfg, v, "normal", 1000).read_text()) for v in ("vib", "act")}
     assert normal["vib"]["seeds"] == normal["act"]["seeds"] == [600_000, 600_001]
     assert normal["act"]["u"] is None and len(normal["vib"]["u"][0]) == normal["vib"]["steps"][0]
+    # the VIB network was calibrated first, so its cells hold every score per step, as u, and the missed grasps
+    assert (cfg.output_dir / "calibrated/vib/seed_1000/config.json").exists()
+    scores = normal["vib"]["scores"]
+    assert {"rate", "image_rate", "embedding_rnd", "chunk_disagreement"} <= set(scores)
+    assert all(len(scores[name][0]) == normal["vib"]["steps"][0] for name in scores)
+    assert normal["vib"]["grasp_missed_at"] == [None, None] or all(
+        m is None or 0 <= m < normal["vib"]["steps"][i] for i, m in enumerate(normal["vib"]["grasp_missed_at"])
+    )
+    assert normal["act"]["scores"] is None
     assert json.loads(cell_path(cfg, "vib", "validation", 1000, "eq6:0.01").read_text())["seeds"] == [400_000, 400_001]
     for v in ("vib", "act"):
         s = results["success"][v]["normal"]
@@ -107,6 +119,18 @@ def test_tiny_benchmark_trains_evaluates_reports_and_resumes_without_repeating_a
         run_benchmark(tiny_config(arm_data, cfg.output_dir, n_episodes=3))
     with pytest.raises(VIBConfigError, match="other steps"):
         run_benchmark(tiny_config(arm_data, cfg.output_dir, steps=3))
+
+
+def test_failure_prediction_adds_perturbed_validation_cells_for_scored_vib_rows_on_validation_seeds(arm_data, tmp_path):
+    cfg = tiny_config(arm_data, tmp_path / "bench", n_episodes_other=3, validation_episodes=2)
+    cells = planned_cells(cfg)
+    perturbed = [c for c in cells if c[1].startswith("validation:")]
+    assert perturbed == [("vib", "validation:occlusion", 1000, None)]  # the scored VIB row only, not ACT
+    assert benchmark.cell_seeds(cfg, "vib", "validation:occlusion") == [400_000, 400_001]  # validation seeds
+    assert benchmark.env_condition("validation:occlusion") == "occlusion"
+    assert "validation_perturbed/occlusion/vib/seed_1000.json" in cell_path(cfg, *perturbed[0]).as_posix()
+    assert not [c for c in planned_cells(tiny_config(arm_data, tmp_path, failure_validation=False))
+                if c[1].startswith("validation:")]  # fmt: skip
 
 
 def test_two_training_seeds_choose_each_run_time_on_validation_and_report_the_spread(arm_data, tmp_path):

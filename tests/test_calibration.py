@@ -4,6 +4,7 @@ import json
 import math
 import os
 
+import numpy as np
 import pytest
 import torch
 from lerobot.datasets.lerobot_dataset import LeRobotDataset
@@ -11,7 +12,7 @@ from lerobot.utils.feature_utils import dataset_to_policy_features
 
 from helpers import BIN, SMALL, make_batch, make_config, run
 from lerobot_vib.calibration import RateTracker, conformal_gamma, mean_plus_2std_gamma
-from lerobot_vib.configuration_vib import VIBConfig
+from lerobot_vib.configuration_vib import VIBConfig, VIBConfigError
 from lerobot_vib.modeling_vib import VIBPolicy
 from lerobot_vib.processor_vib import make_vib_pre_post_processors
 from lerobot_vib.scripts.calibrate import calibrate
@@ -290,6 +291,27 @@ def _rollouts(u_max: list[float], rate_mean: float, safety: bool = False, env: d
         "per_episode": [{"seed": 100 + i, "u_max": u} for i, u in enumerate(u_max)],
         **({"env": env} if env is not None else {}),
     }
+
+
+def test_a_windowed_threshold_is_set_on_the_windowed_u_of_the_clean_rollouts():
+    from lerobot_vib.configuration_vib import CalibrationConfig
+    from lerobot_vib.failure import windowed
+    from lerobot_vib.scripts.calibrate import gamma_from_rollouts
+
+    # 20 clean rollouts of 30 steps, u near 1, each with a one-step spike to 3: the spike sets a one-step
+    # threshold, and a 5-step mean dilutes it to about 1.4
+    rng = np.random.default_rng(0)
+    traces = [np.r_[1 + 0.05 * rng.random(10), 3.0, 1 + 0.05 * rng.random(19)] for _ in range(20)]
+    dataset = CalibrationConfig(dataset_repo_id="local/arm", n_frames=100, rate_mean=2.0, rate_std=0.5)
+    info = _rollouts([float(t.max()) for t in traces], 2.0)
+    one = gamma_from_rollouts(dataset, info, 0.1, "r.json", threshold="max", traces=traces)
+    five = gamma_from_rollouts(dataset, info, 0.1, "r.json", threshold="max", traces=traces, window=5)
+    assert one.window == 1 and one.gamma == pytest.approx(3.0)
+    assert (five.window, five.window_aggregate) == (5, "mean")
+    assert five.gamma == pytest.approx(conformal_gamma([windowed(t, 5).max() for t in traces], 0.1))
+    assert five.gamma < 1.5
+    with pytest.raises(VIBConfigError, match="per-step u of every rollout"):
+        gamma_from_rollouts(dataset, info, 0.1, "r.json", threshold="max", window=5)
 
 
 def _perturbed(**perturbation) -> dict:

@@ -63,3 +63,41 @@ def test_the_step_a_stop_became_terminal_is_reported():
     capture._add_batch(steps[:1], np.zeros((1, 1), dtype=bool), seeds=[8])
     info = summarize(capture.episodes, {"per_task": [{"metrics": {"successes": [0, 0], "max_rewards": [0, 0]}}]})
     assert [e["halted_at"] for e in info["per_episode"]] == [1, None]
+
+
+def test_an_episode_picture_shows_the_rate_map_at_the_highest_u_and_at_the_first_stop(tmp_path):
+    from PIL import Image
+
+    from lerobot_vib.scripts.episode_pictures import _key_steps, draw_episode
+
+    u = np.array([1.0, 1.2, 2.5, 3.0, 1.0])
+    ep = {
+        "u": u, "stop_value": u, "threshold": np.full(5, 2.0), "stopped": u > 2.0,
+        "just_stopped": np.array([0, 0, 1, 0, 0], dtype=bool), "grasp_missed_at": 4,
+        "rate_map": np.random.default_rng(0).random((5, 1, 12, 16)),
+    }  # fmt: skip
+    assert _key_steps(ep) == [("highest u", 3), ("first stop", 2)]
+    assert _key_steps({**ep, "just_stopped": u > 2.9}) == [("highest u, first stop", 3)]
+    draw_episode(ep, {"episode_ix": 0, "seed": 7, "success": False, "stops": 1}, "map_score", tmp_path / "e.png")
+    with_map = Image.open(tmp_path / "e.png").size
+    draw_episode({**ep, "rate_map": None}, {"episode_ix": 0, "seed": 7}, None, tmp_path / "f.png")
+    assert with_map[1] > Image.open(tmp_path / "f.png").size[1]  # the rate maps take a row of their own
+
+
+def test_the_video_frames_show_u_against_the_threshold_and_a_red_band_while_stopped():
+    from types import SimpleNamespace
+
+    from lerobot_vib.scripts.eval_uncertainty import _drawing_u
+
+    frame = np.full((96, 128, 3), 200, dtype=np.uint8)
+    subs = [SimpleNamespace(render=lambda: frame.copy()) for _ in range(2)]
+    env = SimpleNamespace(envs=subs)
+    step = {"score": "low_image_rate", "u": np.array([1.0, 3.0]), "stop_value": np.array([1.0, 3.0]),
+            "gamma": 2.0, "thresholds": None, "stopped": np.array([False, True])}  # fmt: skip
+    rendered = []
+    render = _drawing_u(lambda e: rendered.append([s.render() for s in e.envs]), [step])
+    render(env)
+    running, stopped = rendered[0]
+    assert (running[0, 0] == 0).all() and tuple(stopped[0, 0]) == (150, 0, 0)  # black band, red while stopped
+    assert (running[60:] == 200).all()  # the scene below the band is untouched
+    assert subs[0].render() is not None and (subs[0].render() == 200).all()  # render restored afterwards

@@ -376,6 +376,17 @@ def test_the_threshold_in_force_says_which_of_the_settings_applies():
     assert policy.threshold_in_force()["source"].startswith("safety.gamma")
 
 
+def script_u(policy: VIBPolicy, us: list[float]) -> None:
+    """The policy's u at its t-th step is us[t] (its rate scripted as us[t] * R_bar)."""
+    r_bar, steps, real = policy.rate_mean(), iter(us), policy.observation_scores
+
+    def scripted(batch, wanted=None):
+        posterior, scores = real(batch, wanted)
+        return posterior, {"rate": torch.full_like(scores["rate"], next(steps) * r_bar)}
+
+    policy.observation_scores = scripted
+
+
 @pytest.mark.parametrize(
     ("band_index", "stopped_steps"), [("progress", list(range(1, 9))), ("episode_step", [1, 2, 3, 4])]
 )
@@ -384,19 +395,11 @@ def test_a_time_band_read_at_the_envs_progress_stands_still_while_the_arm_holds(
     (step 5 below, u still 3); read at the env's progress, the stop ends when u falls (step 9)."""
     config = make_config(uncertainty_score="rate")
     policy = with_rate_statistics(VIBPolicy(config))
-    r_bar = policy.rate_mean()
     c = policy.config.calibration
     c.gamma_band, c.gamma, c.gamma_score, c.gamma_method = [2.0] * 4 + [50.0] * 20, 50.0, "rate", "time_band_rollouts"
     policy.config.safety.enabled, policy.config.safety.resume_steps = True, 2
     policy.config.safety.band_index = band_index
-    us = iter([1.0, 3.0, 3.0, 3.0, 3.0, 3.0, 3.0, 3.0, 1.0, 1.0, 1.0])
-    real = policy.observation_scores
-
-    def scripted(batch, wanted=None):
-        posterior, scores = real(batch, wanted)
-        return posterior, {"rate": torch.full_like(scores["rate"], next(us) * r_bar)}
-
-    policy.observation_scores = scripted
+    script_u(policy, [1.0, 3.0, 3.0, 3.0, 3.0, 3.0, 3.0, 3.0, 1.0, 1.0, 1.0])
     policy.reset()
     obs = make_batch(policy.config, batch_size=1, with_action=False)
     stopped = []
@@ -405,3 +408,27 @@ def test_a_time_band_read_at_the_envs_progress_stands_still_while_the_arm_holds(
         if bool(policy.last_step.stopped[0]):
             stopped.append(step)
     assert stopped == stopped_steps
+
+
+@pytest.mark.parametrize(("window", "stopped_at"), [(1, [2]), (3, [7])])
+def test_a_stop_on_a_windowed_u_ignores_a_one_frame_spike_and_catches_a_sustained_rise(window, stopped_at):
+    """u spikes for one frame at step 2 and stays up from step 6: with the window of 3 the calibrated stop reads
+    the mean of the last three u, so only the sustained rise stops it, one step after it began."""
+    config = make_config(uncertainty_score="rate")
+    policy = with_rate_statistics(VIBPolicy(config))
+    c = policy.config.calibration
+    c.gamma, c.gamma_score, c.gamma_method, c.window = 2.0, "rate", "conformal_rollouts", window
+    policy.config.safety.enabled, policy.config.safety.resume_steps = True, 50
+    script_u(policy, [1.0, 1.0, 4.0, 1.0, 1.0, 1.0, 2.6, 2.6, 2.6, 2.6])
+    policy.reset()
+    obs = make_batch(policy.config, batch_size=1, with_action=False)
+    just_stopped, values = [], []
+    for step in range(10):
+        policy.select_action(obs)
+        values.append(float(policy.last_step.stop_value[0]))
+        if bool(policy.last_step.just_stopped[0]):
+            just_stopped.append(step)
+    assert just_stopped == stopped_at
+    if window == 3:
+        assert values[2] == pytest.approx(2.0) and values[8] == pytest.approx(2.6)  # (1 + 1 + 4) / 3, then 2.6
+        assert float(policy.last_step.u[0]) == pytest.approx(2.6)  # Eq. 6 still reads u itself

@@ -222,6 +222,10 @@ def describe_calibration(config, rate_mean: float, training_data: str | None = N
         n = len(c.rollout_seeds or c.conformal_episodes or [])
         how = _GAMMA_METHODS.get(c.gamma_method or "", c.gamma_method or "unknown").format(n=n, alpha=c.conformal_alpha)
         lines.append(f"- Stop threshold gamma = {c.gamma:.4g} on `{c.gamma_score or 'rate'}`, set by {how}.")
+        if c.window > 1:
+            lines.append(
+                f"- The stop reads u's {c.window_aggregate} over each env's last {c.window} steps, as gamma was set."
+            )
     lines.append(
         f"- Safety stop: {'on' if safety.enabled else 'off (enable with `--policy.safety.enabled=true`)'}; action "
         f"`{safety.action}`, resumes after {safety.resume_steps} calm steps, halts after {safety.max_hold_steps}."

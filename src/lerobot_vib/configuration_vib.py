@@ -174,6 +174,11 @@ class CalibrationConfig:
         frames_above_gamma: Fraction of the calibration frames with u > gamma (None for a gamma from rollouts).
         episodes_above_gamma: Fraction of the calibration episodes (or rollouts) with u > gamma at some frame:
             the in-sample rate of episodes the threshold stop would interrupt.
+        window: The stop reads m_t, u aggregated over each env's last `window` steps (failure.windowed), and
+            gamma (or the band) is a threshold on m: a score that stays up for several steps rather than one
+            frame's spike. 1: u itself. Set with gamma by `lerobot-vib-calibrate --rollouts=... --window=w`,
+            since a threshold only means something on the quantity it was calibrated on; Eq. 6 reads u as it is.
+        window_aggregate: "mean" or "sum" of the window's u (they differ only in the first `window` steps).
     """
 
     dataset_repo_id: str | None = None
@@ -195,8 +200,16 @@ class CalibrationConfig:
     gamma_band: list[float] | None = None
     frames_above_gamma: float | None = None
     episodes_above_gamma: float | None = None
+    window: int = 1
+    window_aggregate: str = "mean"
 
     def __post_init__(self):
+        if not (isinstance(self.window, int) and self.window >= 1):
+            raise VIBConfigError(f"`calibration.window` must be a whole number of steps >= 1, got {self.window}.")
+        if self.window_aggregate not in ("mean", "sum"):
+            raise VIBConfigError(
+                f"`calibration.window_aggregate` must be 'mean' or 'sum', got {self.window_aggregate!r}."
+            )
         for name in ("rate_mean", "gamma"):
             value = getattr(self, name)
             if value is not None and not (math.isfinite(value) and value > 0):

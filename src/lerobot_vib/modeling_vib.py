@@ -211,6 +211,9 @@ class UncertaintyStep:
     rate_map: Tensor | None = None  # (B, cameras, H', W') the image tokens' rates (token network only)
     # (B,) each env's threshold, where a time band is read at each env's progress (`gamma` is env 0's)
     thresholds: Tensor | None = None
+    # (B,) what the stop compared with the threshold: u over the calibrated window (`calibration.window`; u
+    # itself when it is 1)
+    stop_value: Tensor | None = None
 
     def row(self, i: int = 0) -> dict[str, float | bool]:
         """Batch element i as plain numbers (for traces)."""
@@ -451,6 +454,7 @@ class VIBPolicy(PreTrainedPolicy):
         self._rate_map: Tensor | None = None
         self._halted_before: Tensor | None = None
         self._progress: Tensor | None = None  # (B,) steps each env ran, stopped ones not counted
+        self._recent_u: list[Tensor] = []  # the last `calibration.window` steps' u, for the stop
         self.last_step = None
 
     # ------------------------------------------------------------------------------------------- uncertainty
@@ -606,12 +610,13 @@ class VIBPolicy(PreTrainedPolicy):
                 self.runtime.monitor.set_threshold(thresholds, self.config.safety.resume_threshold)
             else:
                 self.runtime.monitor.set_threshold(gamma, self.config.safety.resume_threshold)
+        stop_u = self._windowed(u)
         action, decision = self.runtime.step(
-            u, decode, lambda last: self._safety_action(batch, batch_size, last), unknown=~obs_finite
+            u, decode, lambda last: self._safety_action(batch, batch_size, last), unknown=~obs_finite, stop_u=stop_u
         )
         if self._progress is not None:  # a stopped env holds still: its task did not advance
             self._progress += (~decision.stopped.to(self._progress.device)).long()
-        self._log_stop_events(decision, u, gamma if thresholds is None else thresholds, obs_finite)
+        self._log_stop_events(decision, stop_u, gamma if thresholds is None else thresholds, obs_finite)
         self._episode_step += 1
         self.last_rate = rate
         self.last_step = UncertaintyStep(
@@ -627,8 +632,19 @@ class VIBPolicy(PreTrainedPolicy):
             scores=scores,
             rate_map=self._rate_map,
             thresholds=thresholds,
+            stop_value=stop_u,
         )
         return action
+
+    def _windowed(self, u: Tensor) -> Tensor:
+        """m_t: u aggregated over each env's last `calibration.window` steps (failure.windowed), what the stop
+        compares with its threshold; u itself for a window of 1. A non-finite u in the window stays unknown."""
+        window = self.config.calibration.window
+        if window == 1:
+            return u
+        self._recent_u = [*self._recent_u[-(window - 1) :], u]
+        total = torch.stack(self._recent_u).sum(dim=0)
+        return total / len(self._recent_u) if self.config.calibration.window_aggregate == "mean" else total
 
     def _log_stop_events(self, decision, u: Tensor, gamma: float | Tensor, obs_finite: Tensor) -> None:
         """One line per stop, resume and halt, when it happens, with u and the threshold in force: what
@@ -639,14 +655,15 @@ class VIBPolicy(PreTrainedPolicy):
             if not bool(obs_finite[i]) or not math.isfinite(float(u[i])):
                 cause = "the observation or u is not finite (unknown means stop)"
             else:
-                cause = f"u = {float(u[i]):.3f} > gamma = {g:.3f}, {threshold_source(self.config)}"
+                value = f"{self._stop_quantity()} = {float(u[i]):.3f}"
+                cause = f"{value} > gamma = {g:.3f}, {threshold_source(self.config)}"
             logger.warning("Safety stop: env %d at episode step %d: %s.", i, step, cause)
         resume = self.runtime.monitor.resume_threshold
         for i in torch.nonzero(decision.resumed).flatten().tolist():
             below = float(resume[i]) if isinstance(resume, Tensor) else float(resume)
             logger.warning(
-                "Safety stop ended: env %d resumes at episode step %d (u = %.3f, below %.3f for %d steps).",
-                i, step, float(u[i]), below, self.config.safety.resume_steps,
+                "Safety stop ended: env %d resumes at episode step %d (%s = %.3f, below %.3f for %d steps).",
+                i, step, self._stop_quantity(), float(u[i]), below, self.config.safety.resume_steps,
             )  # fmt: skip
         if decision.halted is not None:
             halted_now = decision.halted & ~self._halted_before if self._halted_before is not None else decision.halted
@@ -657,6 +674,10 @@ class VIBPolicy(PreTrainedPolicy):
                     i, step, self.config.safety.max_hold_steps,
                 )  # fmt: skip
             self._halted_before = decision.halted.clone()
+
+    def _stop_quantity(self) -> str:
+        c = self.config.calibration
+        return "u" if c.window == 1 else f"u's {c.window_aggregate} over {c.window} steps"
 
     def threshold_in_force(self, step: int | None = None) -> dict[str, Any]:
         """The stop threshold in force and where it comes from, in one place: {"enabled", "gamma" (at episode

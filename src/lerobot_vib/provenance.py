@@ -59,6 +59,8 @@ def active_perturbations(perturbation: dict | None) -> list[str]:
         (f"noise_std={p.noise_std}", any(s > 0 for s in p.noise_std)),
         (f"color_jitter={p.color_jitter}", p.color_jitter > 0 and p.color_jitter_p > 0),
         ("black_images=true", p.black_images),
+        (f"dim={p.dim}", p.dim < 1),
+        (f"frozen_from={p.frozen_from}", p.frozen_from is not None),
         (f"camera_shake={p.camera_shake}", p.camera_shake > 0),
         ("unseen_block=true", p.unseen_block),
         ("occlusion=true", p.occlusion),

@@ -128,15 +128,17 @@ class ChunkRuntime:
         predict_chunk: Callable[[], Tensor],
         safety_action: Callable[[Tensor | None], Tensor],
         unknown: Tensor | None = None,
+        stop_u: Tensor | None = None,
     ) -> tuple[Tensor, SafetyStep]:
         """One step. u: (B,); predict_chunk() -> (B, chunk_size, A), called only when a chunk is needed;
-        safety_action(last_command) -> (B, A); unknown: (B,) bool, steps that cannot be trusted.
+        safety_action(last_command) -> (B, A); unknown: (B,) bool, steps that cannot be trusted; stop_u: (B,)
+        what the stop reads instead of u (a windowed u), while Eq. 6 weighs chunks by u.
 
         Returns the action (B, A) and the monitor's decision, with `stopped` including non-finite actions.
         """
         if self.monitor is None:
             raise RuntimeError("ChunkRuntime.reset(monitor) must give a safety monitor before the first step.")
-        decision = self.monitor.update(u, unknown=unknown)
+        decision = self.monitor.update(u if stop_u is None else stop_u, unknown=unknown)
         if not self._plans:
             self._plans = [
                 _EnvPlans(self.ensemble, self.chunk_size, self.n_action_steps, self.coeff) for _ in range(len(u))

@@ -11,7 +11,7 @@ For each training seed (`--train_seeds`):
 1. train: every network the rows need (variants.NETWORKS: VIB from the profile's preset, VIB with beta = 0,
    ACT with the same sizes, recipe and budget, ACT with VIB's trunk treatment), each by `lerobot-train` (an
    interrupted training resumes with LeRobot's `--resume=true`); or given checkpoints (`--vib_checkpoint`,
-   `--act_checkpoint`, one training seed only).
+   `--vib_tokens_checkpoint`, `--act_checkpoint`, one training seed only).
 2. RND (rnd.py) on the training dataset, normalized by the VIB checkpoint's preprocessor, if a row needs it.
 3. validation: clean rollouts on the validation seeds. Every choice is made here and only here: the run time
    of each row whose run time is chosen (among `--runtimes`, per trained network), and the thresholds of the
@@ -24,7 +24,11 @@ training seeds (Wilson interval) and its mean and range over them. Validation an
 a configuration whose choices would see test episodes is refused before any work.
 
 Conditions: normal; gaussian (noise std drawn from {0, 0.05, 0.1}); color (jitter 0.2 with probability 0.5);
-on the simulated arm also camera_shake, unseen_block and occlusion (sim/perturbations.py).
+black, dim and frozen images; on the simulated arm also camera_shake, unseen_block and occlusion
+(sim/perturbations.py).
+
+Before evaluating, each VIB network is calibrated on the training data (`--calibrate`), so that its cells hold
+every score per step; the report's failure prediction (failure_report.py) reads them.
 """
 
 import contextlib
@@ -33,8 +37,10 @@ import fcntl
 import hashlib
 import json
 import logging
+import math
 import os
 import platform
+import shutil
 import subprocess
 import sys
 import threading
@@ -75,6 +81,7 @@ from ..variants import (
     queue_steps,
 )
 from .benchmark_report import write_report
+from .calibrate import _write, calibrate
 from .eval_uncertainty import UncertaintyCapture
 
 logger = logging.getLogger(__name__)
@@ -96,9 +103,11 @@ ACT_FROM_VIB = {
 }
 
 VALIDATION = "validation"  # clean rollouts on the validation seeds: every choice, the thresholds included
+PERTURBED = "validation:"  # + a condition: a scored VIB row's validation rollouts under it (failure prediction)
 # Table I's rows that get `n_episodes` on every condition; the others get `n_episodes_other`. The comparison
 # rows get `n_episodes` on the normal condition and `n_episodes_other` under each perturbation.
 MAIN_VARIANTS = ("vib", "act")
+GIVEN = ("vib", "vib_tokens", "act")  # the networks a trained checkpoint can be given for (--<network>_checkpoint)
 DEFAULT_RUNTIMES = ("queue", "act:0.01", "act:0.3")
 
 
@@ -142,7 +151,8 @@ class BenchmarkConfig:
     variants: Rows (variants.VARIANTS); default the paper's Table I. `[comparison]` stands for the four rows
         that separate the bottleneck from VIB's other choices (variants.COMPARISON), `[tokens]` for the five
         that put it on ACT's token memory (variants.TOKEN_COMPARISON).
-    conditions: Default: normal, gaussian, color, and on the simulated arm camera_shake, unseen_block, occlusion.
+    conditions: Default: normal, gaussian, color, black, dim, frozen, and on the simulated arm camera_shake,
+        unseen_block, occlusion.
     n_episodes: Test episodes per cell for VIB (Eq. 6), ACT and the comparison rows, and for every row on the
         normal condition.
     n_episodes_other: Test episodes per cell for the other rows and conditions.
@@ -156,13 +166,24 @@ class BenchmarkConfig:
     steps: Training steps of every network.
     save_freq: Steps between saved training checkpoints: an interrupted training resumes from the last one.
     rnd_steps: Training steps of the RND predictor.
-    vib_checkpoint, act_checkpoint: Trained `pretrained_model` folders to evaluate instead of training.
+    vib_checkpoint, vib_tokens_checkpoint, act_checkpoint: Trained `pretrained_model` folders to evaluate
+        instead of training the network of that name (variants.NETWORKS).
     device: Where training and evaluation run.
     eval_batch_size: Envs per rollout batch.
     alpha: Level of the conformal thresholds (false-stop rate bound on in-distribution episodes).
     train_seeds: Training seeds: every network is trained once per seed, and every cell evaluated per seed.
     validation_seed: The first validation episode seed (every choice). test_seed: the first test episode seed
         (every reported number). The two ranges must not overlap.
+    calibrate: Calibrate each trained VIB network on the training dataset before evaluating it (every score's
+        training statistics and fitted parts, as `lerobot-vib-calibrate` does), so that every cell records every
+        score per step and failure prediction can compare them. false: the rate only, normalized by
+        training's running mean (runs made before this field).
+    failure_alphas: The false-alarm levels swept for failure prediction's TPR-against-TNR curves; `alpha` is
+        the level its tables report.
+    failure_validation: Also roll out each scored VIB row under every perturbed condition on the first
+        `n_episodes_other` validation seeds, so that failure prediction chooses its monitor seeing successes
+        under perturbations the policy handles (negatives) and failures under those it does not. Thresholds
+        are still set on successful clean validation rollouts only; the test seeds stay unseen.
     train_only: Train every network for every seed, then stop (train where a GPU is, evaluate elsewhere).
     report_only: Write the report from the cells on disk, running nothing (a partial run's report says which
         cells it lacks).
@@ -183,10 +204,14 @@ class BenchmarkConfig:
     save_freq: int = 1000
     rnd_steps: int | None = None
     vib_checkpoint: Path | None = None
+    vib_tokens_checkpoint: Path | None = None
     act_checkpoint: Path | None = None
     device: str | None = None
     eval_batch_size: int = 10
     alpha: float = 0.1
+    calibrate: bool = True
+    failure_validation: bool = True
+    failure_alphas: list[float] = field(default_factory=lambda: [0.02, 0.05, 0.1, 0.2, 0.3, 0.5])
     train_seeds: list[int] = field(default_factory=lambda: [1000])
     validation_seed: int = 400_000
     test_seed: int = 600_000
@@ -231,8 +256,9 @@ class BenchmarkConfig:
             if getattr(self, name) < 1:
                 raise VIBConfigError(f"--{name} must be >= 1, got {getattr(self, name)}.")
         self._check_protocol()
-        if not 0 < self.alpha < 1:
-            raise VIBConfigError(f"--alpha must be in (0, 1), got {self.alpha}.")
+        for alpha in (self.alpha, *self.failure_alphas):
+            if not 0 < alpha < 1:
+                raise VIBConfigError(f"--alpha and --failure_alphas must be in (0, 1), got {alpha}.")
         if not self.preset.exists():
             raise VIBConfigError(f"The VIB preset {self.preset} does not exist: give --preset=<train config>.")
         if self.steps is None:
@@ -260,7 +286,7 @@ class BenchmarkConfig:
         chosen_unscored = [v for v in self.variants if VARIANTS[v].ensemble == CHOSEN and VARIANTS[v].score is None]
         if chosen_unscored and any(spec.startswith("eq6") for spec in self.runtimes):
             raise VIBConfigError(f"Eq. 6 needs a u: rows {chosen_unscored} have none; drop eq6 from --runtimes.")
-        given = [n for n in ("vib_checkpoint", "act_checkpoint") if getattr(self, n) is not None]
+        given = [f"{n}_checkpoint" for n in GIVEN if getattr(self, f"{n}_checkpoint") is not None]
         if given and len(self.train_seeds) > 1:
             raise VIBConfigError(f"--{given[0]} is one trained network: it takes a single --train_seeds value.")
 
@@ -283,6 +309,8 @@ class BenchmarkConfig:
     def episodes(self, variant: str, condition: str) -> int:
         if condition == VALIDATION:
             return self.validation_episodes
+        if condition.startswith(PERTURBED):
+            return min(self.n_episodes_other, self.validation_episodes)
         if variant in COMPARISON or variant in TOKEN_COMPARISON:  # the claims' rows: the most episodes
             return self.n_episodes if condition == "normal" else self.n_episodes_other
         return self.n_episodes if variant in MAIN_VARIANTS else self.n_episodes_other
@@ -381,7 +409,7 @@ def act_recipe_flags(preset: dict) -> list[str]:
 
 
 def given_checkpoint(network: str, cfg: BenchmarkConfig) -> Path | None:
-    return {"vib": cfg.vib_checkpoint, "act": cfg.act_checkpoint}.get(network)
+    return getattr(cfg, f"{network}_checkpoint") if network in GIVEN else None
 
 
 def train_dir(cfg: BenchmarkConfig, network: str, seed: int) -> Path:
@@ -424,6 +452,28 @@ def _train(network: str, cfg: BenchmarkConfig, seed: int, out: Path) -> Path:
     if result.returncode != 0 or not final.exists():
         raise RuntimeError(f"Training {network}, seed {seed} failed (exit {result.returncode}); see {log}.")
     return final
+
+
+def calibrated(network: str, cfg: BenchmarkConfig, seed: int, path: Path) -> Path:
+    """The VIB checkpoint with every score's training statistics: itself when it is calibrated already, else a
+    calibrated copy under calibrated/<network>/seed_<seed>/ (made once; the trained checkpoint is left as it is)."""
+    if (PreTrainedConfig.from_pretrained(path).calibration.score_means or {}) != {}:
+        return path
+    out = cfg.output_dir / "calibrated" / network / f"seed_{seed}"
+    with _locked(out.parent, f"{out.name}.lock"):
+        if (out / "config.json").exists():
+            return out
+        logger.info("Calibrating %s, seed %d, on %s (every score's statistics).", network, seed, cfg.dataset.repo_id)
+        policy = VIBPolicy.from_pretrained(path)
+        preprocessor, _ = make_pre_post_processors(policy.config, pretrained_path=str(path))
+        calibration = calibrate(
+            policy, preprocessor, cfg.dataset.repo_id, root=cfg.dataset.root, rnd_steps=cfg.rnd_steps
+        )
+        staging = out.with_name(f"{out.name}.partial")
+        shutil.rmtree(staging, ignore_errors=True)  # an interrupted calibration of this same copy
+        _write(policy, preprocessor, calibration, path, staging)
+        staging.replace(out)  # the folder exists only when complete
+    return out
 
 
 def check_given_checkpoint(path: Path, cfg: BenchmarkConfig) -> None:
@@ -482,21 +532,35 @@ def fit_rnd(cfg: BenchmarkConfig, vib_path: Path, vib: VIBPolicy, seed: int) -> 
 
 def cell_path(cfg: BenchmarkConfig, variant: str, condition: str, seed: int, runtime: str | None = None) -> Path:
     """A test cell: cells/<condition>/<variant>/seed_<seed>.json; a validation cell:
-    validation/<variant>/seed_<seed>/<run time>.json."""
+    validation/<variant>/seed_<seed>/<run time>.json; a perturbed validation cell (failure prediction):
+    validation_perturbed/<condition>/<variant>/seed_<seed>.json."""
     if condition == VALIDATION:
         return cfg.output_dir / VALIDATION / variant / f"seed_{seed}" / f"{runtime.replace(':', '_')}.json"
+    if condition.startswith(PERTURBED):
+        return (
+            cfg.output_dir / "validation_perturbed" / condition.removeprefix(PERTURBED) / variant / f"seed_{seed}.json"
+        )
     return cfg.output_dir / "cells" / condition / variant / f"seed_{seed}.json"
+
+
+def env_condition(condition: str) -> str:
+    """The perturbation (sim/perturbations.CONDITIONS) a cell's condition rolls out under."""
+    if condition == VALIDATION:
+        return "normal"
+    return condition.removeprefix(PERTURBED)
 
 
 def cell_seeds(cfg: BenchmarkConfig, variant: str, condition: str) -> list[int]:
     if condition == VALIDATION:
         return cfg.validation_seeds()
+    if condition.startswith(PERTURBED):
+        return cfg.validation_seeds()[: cfg.episodes(variant, condition)]
     return cfg.test_seeds()[: cfg.episodes(variant, condition)]
 
 
 def run_cell(cfg: BenchmarkConfig, variant: str, condition: str, policy, processors: tuple) -> dict:
     """Evaluate one row under one condition with LeRobot's eval loop; u per step of every episode."""
-    env_cfg = dataclasses.replace(cfg.env, perturbation=CONDITIONS["normal" if condition == VALIDATION else condition])
+    env_cfg = dataclasses.replace(cfg.env, perturbation=CONDITIONS[env_condition(condition)])
     seeds = cell_seeds(cfg, variant, condition)
     batch = min(cfg.eval_batch_size, len(seeds))
     vec_envs = make_env(env_cfg, n_envs=batch, use_async_envs=False)
@@ -524,8 +588,22 @@ def run_cell(cfg: BenchmarkConfig, variant: str, condition: str, policy, process
         "steps": [len(e["u"]) for e in episodes],
         "score": VARIANTS[variant].score,
         "u": [np.round(e["u"].astype(float), 5).tolist() for e in episodes] if scored else None,
+        "scores": _every_score(policy, episodes),
+        "grasp_missed_at": [e.get("grasp_missed_at") for e in episodes],
         "wall_s": round(time.time() - start, 1),
     }
+
+
+def _every_score(policy, episodes: list[dict]) -> dict[str, list[list[float]]] | None:
+    """Every score a traced VIB row computed, as u = s / s_bar per step of each episode (None: not traced)."""
+    if not getattr(policy, "trace_all_scores", False) or not episodes:
+        return None
+    out = {}
+    for name in episodes[0]["scores"]:
+        mean = policy.score_mean(name)
+        if math.isfinite(mean) and mean > 0 and all(name in e["scores"] for e in episodes):
+            out[name] = [np.round(e["scores"][name].astype(float) / mean, 5).tolist() for e in episodes]
+    return out
 
 
 def _write_json(path: Path, data: Any) -> None:
@@ -551,6 +629,9 @@ def planned_cells(cfg: BenchmarkConfig, seeds: list[int] | None = None) -> list[
     cells: list[Cell] = []
     for seed in cfg.train_seeds if seeds is None else seeds:
         cells += [(v, VALIDATION, seed, rt) for v in cfg.variants for rt in cfg.validated(v)]
+        if cfg.failure_validation and cfg.calibrate:
+            scored = [v for v in cfg.variants if VARIANTS[v].score is not None and NETWORKS[VARIANTS[v].score] == "vib"]
+            cells += [(v, PERTURBED + c, seed, None) for c in cfg.conditions if c != "normal" for v in scored]
         cells += [(v, c, seed, None) for c in cfg.conditions for v in cfg.variants]
     return cells
 
@@ -582,7 +663,7 @@ def load_network(network: str, path: Path, device: str):
 
 
 def run_benchmark(cfg: BenchmarkConfig, report_only: bool = False) -> dict | None:
-    for network in ("vib", "act"):
+    for network in GIVEN:
         if (given := given_checkpoint(network, cfg)) is not None:
             check_given_checkpoint(Path(given), cfg)
     cfg.output_dir.mkdir(parents=True, exist_ok=True)
@@ -619,6 +700,8 @@ def _run_seed(cfg: BenchmarkConfig, seed: int, todo: list[Cell], clock: "WallClo
     paths = {}
     for network in cfg.networks():
         paths[network] = train(network, cfg, seed)
+        if cfg.calibrate and NETWORKS[network] == "vib":
+            paths[network] = calibrated(network, cfg, seed, paths[network])
         clock.tick()
     nets = {n: load_network(n, p, cfg.device) for n, p in paths.items()}
     rnd = fit_rnd(cfg, paths["vib"], nets["vib"], seed).to(cfg.device) if cfg.needs("rnd") else None
@@ -645,6 +728,8 @@ def _run_seed(cfg: BenchmarkConfig, seed: int, todo: list[Cell], clock: "WallClo
         else:
             runtime_used = runtime
         policy = build_variant(variant, nets, rnd, runtime_used)
+        if cfg.calibrate and isinstance(policy, VIBPolicy):
+            policy.trace_all_scores = True  # every score per step, for failure prediction (failure.py)
         cell = run_cell(cfg, variant, condition, policy, processors[VARIANTS[variant].chunks])
         cell.update(train_seed=seed, runtime=runtime_used)
         _write_json(cell_path(cfg, variant, condition, seed, runtime), cell)
@@ -681,8 +766,13 @@ def score_statistics(nets: dict, rnd: RND | None) -> dict:
 # What a saved cell depends on: a rerun with other values must not mix its cells with the saved ones.
 RESUME_KEYS = (
     "dataset", "env", "preset", "steps", "rnd_steps", "vib_checkpoint", "act_checkpoint", "device",
-    "validation_seed", "test_seed", "runtimes",
+    "vib_tokens_checkpoint",
+    "validation_seed", "test_seed", "runtimes", "calibrate",
 )  # fmt: skip
+
+
+# What a run saved before a resume key existed did: it did not calibrate (the rate only, as u).
+BEFORE_THE_FIELD = {"calibrate": False}
 
 
 def checkpoint_fingerprint(path: Path) -> str:
@@ -700,7 +790,7 @@ def checkpoint_fingerprint(path: Path) -> str:
 def _given_fingerprints(cfg: BenchmarkConfig) -> dict[str, str]:
     return {
         f"{network}_checkpoint": checkpoint_fingerprint(Path(given))
-        for network in ("vib", "act")
+        for network in GIVEN
         if (given := given_checkpoint(network, cfg)) is not None
     }
 
@@ -726,7 +816,7 @@ def check_resumable(cfg: BenchmarkConfig) -> None:
                     "its thresholds and u would mix with the saved ones. Use another --output_dir, or a copy of the "
                     "checkpoint as it was."
                 )
-        if changed := [k for k in RESUME_KEYS if saved.get(k) != now.get(k)]:
+        if changed := [k for k in RESUME_KEYS if saved.get(k, BEFORE_THE_FIELD.get(k)) != now.get(k)]:
             raise VIBConfigError(
                 f"{cfg.output_dir} holds a benchmark run with other {', '.join(changed)}; its cells would mix with "
                 "this run's. Use another --output_dir, or rerun with the same settings to resume."

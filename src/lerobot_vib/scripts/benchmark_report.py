@@ -25,6 +25,7 @@ from ..calibration import conformal_gamma, conformal_min_scores
 from ..metrics import auroc, roc_curve, stop_metrics, time_indexed_band, wilson_interval
 from ..sim.perturbations import CONDITIONS, draw_scene_episode
 from ..variants import CHOSEN, VARIANTS
+from . import failure_report
 
 logger = logging.getLogger(__name__)
 
@@ -192,8 +193,8 @@ def protocol_flags(cfg, cells: dict, choices: dict, planned: int) -> list[str]:
                     f"VIOLATION: {VARIANTS[variant].label}'s run time at training seed {seed} was chosen on "
                     f"{len(shared)} test episodes"
                 )
-    for name in ("vib_checkpoint", "act_checkpoint"):
-        if getattr(cfg, name) is not None:
+    for name in ("vib_checkpoint", "vib_tokens_checkpoint", "act_checkpoint"):
+        if getattr(cfg, name, None) is not None:
             flags.append(
                 f"--{name} was given: how that checkpoint (and its recipe) was chosen is outside this run and "
                 "not checked, beyond its recorded stop threshold"
@@ -259,8 +260,17 @@ def write_report(cfg, cells: dict, wall_s: float, planned: int) -> dict:
             results["uncertainty"].setdefault(v, {})[str(seed)] = uncertainty(
                 by_condition, calibration, v, cfg.conditions, gamma, cfg.alpha
             )
+    results["failure_prediction"] = failure_report.failure_prediction(
+        cfg, cells, lambda v, seed: runtime_of(choices, v, seed)
+    )
     (out / "results.json").write_text(json.dumps(results, indent=1))
     plots = _plots(cfg, cells, results, out)
+    labels = {v: VARIANTS[v].label for v in cfg.variants}
+    if results["failure_prediction"]:
+        try:
+            plots += failure_report.plot(results["failure_prediction"], out, labels)
+        except ImportError:
+            logger.warning("matplotlib is not installed: no failure prediction plot.")
     (out / "report.md").write_text(_markdown(cfg, results, plots))
     logger.info("Report: %s", out / "report.md")
     return results
@@ -430,6 +440,9 @@ def _markdown(cfg, results: dict, plots: list[str]) -> str:
                     )
                 for note in u["thresholds"]["notes"]:
                     lines.append(f"\n_{label}: {note}._")
+    if results.get("failure_prediction"):
+        labels = {v: VARIANTS[v].label for v in cfg.variants}
+        lines += failure_report.markdown(cfg, results["failure_prediction"], labels)
     if plots:
         lines += ["", "## Plots", ""] + [f"![{p}]({p})" for p in plots]
     return "\n".join(lines) + "\n"

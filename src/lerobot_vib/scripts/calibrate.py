@@ -52,6 +52,7 @@ from ..calibration import (
     mean_plus_2std_gamma,
 )
 from ..configuration_vib import CalibrationConfig, VIBConfigError
+from ..failure import windowed
 from ..metrics import time_indexed_band
 from ..modeling_vib import EncoderParts, VIBPolicy
 from ..processor_vib import vib_dataset_stats
@@ -90,6 +91,9 @@ class CalibrateConfig:
     threshold: With `rollouts` (None: "time_band"): "time_band", one threshold per episode step from the
         rollouts' per-step u (the best measured on the arm, docs/uncertainty.md; it needs twice the rollouts of
         "max", 18 at alpha = 0.1), or "max", one gamma, the conformal threshold on each rollout's max u.
+    window: With `rollouts`: the stop reads u aggregated over each env's last `window` steps, and the threshold
+        is set on that (`calibration.window`; failure.py's windowed monitors). 1: u itself.
+    window_aggregate: "mean" or "sum" over the window.
     rnd_steps: Training steps of the "embedding_rnd" score's predictor (batch 256, on the recorded embeddings).
     num_workers: DataLoader workers.
     output_dir: Where to write the calibrated checkpoint (default: `<checkpoint>_calibrated` beside a local
@@ -112,6 +116,8 @@ class CalibrateConfig:
     num_workers: int = 0
     rnd_steps: int = 3000
     threshold: str | None = None
+    window: int = 1
+    window_aggregate: str = "mean"
     output_dir: Path | None = None
     in_place: bool = False
     push_to_hub: bool = False
@@ -159,6 +165,15 @@ class CalibrateConfig:
                 raise VIBConfigError("`--threshold` sets gamma from rollouts: give `--rollouts=` too.")
         elif self.rollouts is not None:
             self.threshold = "time_band"
+        if self.window < 1 or self.window_aggregate not in ("mean", "sum"):
+            raise VIBConfigError(
+                f"`--window` must be >= 1 and `--window_aggregate` mean or sum, got {self.window} and "
+                f"{self.window_aggregate!r}."
+            )
+        if self.window > 1 and self.rollouts is None:
+            raise VIBConfigError(
+                "`--window` sets the stop's window with its threshold from rollouts: give `--rollouts=`."
+            )
         if self.batch_size < 1:
             raise VIBConfigError(f"`--batch_size` must be >= 1, got {self.batch_size}.")
         policy_path = parser.get_path_arg("policy")
@@ -427,6 +442,8 @@ def gamma_from_rollouts(
     traces: list[np.ndarray] | None = None,
     policy_config: PreTrainedConfig | None = None,
     recording: dict | None = None,
+    window: int = 1,
+    window_aggregate: str = "mean",
 ) -> CalibrationConfig:
     """`calibration` with gamma = the split-conformal threshold on clean rollouts' per-episode max u of the
     score the checkpoint reads u from (`expected_score`); with `threshold="time_band"`, the time-indexed band
@@ -435,7 +452,8 @@ def gamma_from_rollouts(
 
     Refused unless the rollouts are clean ones of this checkpoint: the stop off, no perturbation, the env's
     cameras and image size those of `policy_config`, its task and workspace those of the training `recording`
-    (provenance.py), u normalized as this checkpoint normalizes it."""
+    (provenance.py), u normalized as this checkpoint normalizes it. With `window` > 1 both thresholds are set on
+    u aggregated over the last `window` steps (failure.windowed), from the per-step `traces`."""
     if calibration.rate_mean is None:
         raise VIBConfigError(
             "The checkpoint has no R_bar: calibrate it on its dataset first, evaluate that checkpoint, then use "
@@ -474,6 +492,11 @@ def gamma_from_rollouts(
             f"{source} has rollouts without a finite max u (seeds {unknown}): fix them, then calibrate."
         )
     scores = [ep["u_max"] for ep in info["per_episode"]]
+    if window > 1:
+        if traces is None or len(traces) != len(scores):
+            raise VIBConfigError(f"A window of {window} steps needs the per-step u of every rollout in {source}.")
+        traces = [windowed(t, window, window_aggregate) for t in traces]
+        scores = [float(np.max(t)) for t in traces]
     needed = conformal_min_scores(alpha) * (2 if threshold == "time_band" else 1)
     if len(scores) < needed:
         raise VIBConfigError(
@@ -507,6 +530,8 @@ def gamma_from_rollouts(
         rollout_command=info.get("command"),
         frames_above_gamma=None,
         episodes_above_gamma=float(np.mean(above)),
+        window=window,
+        window_aggregate=window_aggregate,
     )
 
 
@@ -580,7 +605,7 @@ def _calibrate_on_rollouts(cfg: CalibrateConfig) -> CalibrationConfig:
     output_dir = _output_dir(source, cfg.output_dir, cfg.in_place)
     info = json.loads(Path(cfg.rollouts).read_text())
     traces = None
-    if cfg.threshold == "time_band":
+    if cfg.threshold == "time_band" or cfg.window > 1:
         traces = read_traces(Path(cfg.rollouts).with_name("uncertainty_trace.csv"))
     calibration = gamma_from_rollouts(
         cfg.policy.calibration,
@@ -592,6 +617,8 @@ def _calibrate_on_rollouts(cfg: CalibrateConfig) -> CalibrationConfig:
         traces=traces,
         policy_config=cfg.policy,
         recording=recorded[1] if (recorded := training_recording(source)) else None,
+        window=cfg.window,
+        window_aggregate=cfg.window_aggregate,
     )
     policy = VIBPolicy.from_pretrained(source, config=cfg.policy)
     preprocessor, _ = make_pre_post_processors(policy.config, pretrained_path=str(source))
@@ -607,7 +634,9 @@ def _calibrate_on_rollouts(cfg: CalibrateConfig) -> CalibrationConfig:
             else f"(split conformal at alpha={cfg.conformal_alpha} on the max u of {len(info['per_episode'])} "
             f"rollouts in {cfg.rollouts}; "
         )
-        + f"{100 * calibration.episodes_above_gamma:.0f}% of them exceed it). R_bar={calibration.rate_mean:.6g} "
+        + f"{100 * calibration.episodes_above_gamma:.0f}% of them exceed it"
+        + (f"; on u's {cfg.window_aggregate} over {cfg.window} steps" if cfg.window > 1 else "")
+        + "). R_bar={calibration.rate_mean:.6g} "
         "is unchanged."
     )
     return calibration

@@ -13,9 +13,13 @@ and `eval_info.json`). Beside `eval_info.json` it writes
                          the mean rate u was normalized by (`lerobot-vib-calibrate --rollouts` checks it);
                          and the env the rollouts ran in (`env`: type, task, workspace, episode length, image
                          size, cameras, perturbation), which `--rollouts` calibration also checks
+  pictures/episode_<i>.png  per episode: what the stop read at every step against the threshold in force, the
+                         stopped steps, the first missed grasp, and (token network) the rate map over the
+                         image at the episode's step of highest u and at its first stop
   uncertainty_trace.csv  one row per step of every episode: episode, seed, step, rate, u, stopped, just_stopped,
                          and threshold, the stop threshold gamma at that step (a time-indexed band moves it;
-                         it stops the policy only with the stop on, `safety_enabled` in uncertainty_info.json)
+                         it stops the policy only with the stop on, `safety_enabled` in uncertainty_info.json),
+                         and stop_value, what the stop compared with it (u, or u over the calibrated window)
 
 Every `select_action` of a VIB policy leaves the step's rate, u and stop decision per env in
 `policy.last_step`; this command keeps them while LeRobot's `rollout` runs a batch of envs, then cuts each
@@ -49,10 +53,11 @@ from lerobot.utils.utils import init_logging
 from ..configuration_vib import VIBConfigError
 from ..provenance import env_record, input_mismatches, recording_mismatches, training_recording
 from ..safety import NothingSafeToHoldError
+from .episode_pictures import write_pictures
 
 logger = logging.getLogger(__name__)
 
-TRACE_FIELDS = ("episode", "seed", "step", "rate", "u", "stopped", "just_stopped", "threshold")
+TRACE_FIELDS = ("episode", "seed", "step", "rate", "u", "stopped", "just_stopped", "threshold", "stop_value")
 
 
 class UncertaintyCapture:
@@ -97,29 +102,50 @@ class UncertaintyCapture:
                         "gamma": s.gamma,
                         "thresholds": None if s.thresholds is None else s.thresholds.float().cpu().numpy(),
                         "safety": s.threshold_active,
+                        "stop_value": (s.u if s.stop_value is None else s.stop_value).float().cpu().numpy(),
+                        "rate_map": None if s.rate_map is None else s.rate_map.float().cpu().numpy(),
+                        "all_scores": {k: v.float().cpu().numpy() for k, v in (s.scores or {}).items()},
                     }
                 )
                 return action
 
-            policy.select_action = select_and_record  # an instance attribute, removed below
+            env = kwargs["env"]
+            env_step = env.step
+            missed: list[np.ndarray] = []  # per env step: the envs whose gripper closed on nothing (arm_env.py)
+
+            def step_and_record(action):
+                out = env_step(action)
+                missed.append(_info_flags(out[-1], "grasp_missed", env.num_envs))
+                return out
+
+            if kwargs.get("render_callback") is not None:  # LeRobot's video frames get u and the stop drawn on
+                kwargs["render_callback"] = _drawing_u(kwargs["render_callback"], steps)
+            policy.select_action = select_and_record  # instance attributes, removed below
+            env.step = step_and_record
             try:
                 data = rollout(*args, **kwargs)
             finally:
                 del policy.select_action
-            self._add_batch(steps, data["done"].cpu().numpy(), kwargs.get("seeds"))
+                del env.step
+            self._add_batch(steps, data["done"].cpu().numpy(), kwargs.get("seeds"), missed)
             return data
 
         return recording_rollout
 
-    def _add_batch(self, steps: list[dict], done: np.ndarray, seeds: list[int] | None) -> None:
+    def _add_batch(
+        self, steps: list[dict], done: np.ndarray, seeds: list[int] | None, missed: list[np.ndarray] | None = None
+    ) -> None:
         if len(steps) != done.shape[1]:
             raise RuntimeError(f"{len(steps)} policy steps for {done.shape[1]} env steps: the record is misaligned.")
         for i in range(done.shape[0]):
             ended = np.flatnonzero(done[i])
             n = int(ended[0]) + 1 if len(ended) else done.shape[1]  # the done step itself belongs to the episode
+            missed_steps = np.flatnonzero([m[i] for m in (missed or [])[:n]])
             self.episodes.append(
                 {
                     "seed": None if seeds is None else int(seeds[i]),
+                    # the first step whose action closed the gripper on nothing; None: never, or not measurable
+                    "grasp_missed_at": int(missed_steps[0]) if len(missed_steps) else None,
                     "gamma": steps[0]["gamma"] if steps else float("nan"),
                     "safety": steps[0]["safety"] if steps else False,
                     "score": steps[0].get("score", "rate") if steps else None,
@@ -130,6 +156,17 @@ class UncertaintyCapture:
                         for key in ("rate", "u", "stopped", "just_stopped")
                     },
                     "halted": np.array([s.get("halted", np.zeros(done.shape[0], dtype=bool))[i] for s in steps[:n]]),
+                    # every score the policy computed at every step (VIBPolicy.trace_all_scores), raw values
+                    "scores": {
+                        name: np.array([s["all_scores"][name][i] for s in steps[:n]])
+                        for name in (steps[0].get("all_scores") or {} if steps else {})
+                        if all(name in s.get("all_scores", {}) for s in steps[:n])
+                    },
+                    "stop_value": np.array([s.get("stop_value", s["u"])[i] for s in steps[:n]], dtype=float),
+                    # (T, cameras, H', W') the token network's image-token rates at each step, else None
+                    "rate_map": np.stack([s["rate_map"][i] for s in steps[:n]])
+                    if steps and all(s.get("rate_map") is not None for s in steps[:n])
+                    else None,
                     "threshold": np.array(
                         [s["gamma"] if s.get("thresholds") is None else s["thresholds"][i] for s in steps[:n]],
                         dtype=float,
@@ -145,6 +182,65 @@ class UncertaintyCapture:
             for start in range(0, len(self.episodes), per_task)
             for ep in self.episodes[start : start + per_task][:n_episodes]
         ]
+
+
+def _drawing_u(render_callback: Callable, steps: list[dict]) -> Callable:
+    """LeRobot's render callback with each sub-env's frame overlaid by the last policy step's record: what
+    the stop read against its threshold, and whether the env is stopped. Async envs render in their workers;
+    their frames stay as they are."""
+
+    def render(env) -> None:
+        subs = getattr(env, "envs", None)
+        if not steps or subs is None:
+            return render_callback(env)
+        last = steps[-1]
+        own = [vars(sub).get("render") for sub in subs]  # a render set on the instance itself, to put back
+        for i, sub in enumerate(subs):
+            sub.render = lambda i=i, original=sub.render: draw_u(original(), last, i)
+        try:
+            return render_callback(env)
+        finally:
+            for sub, render_fn in zip(subs, own, strict=True):
+                if render_fn is None:
+                    del sub.render
+                else:
+                    sub.render = render_fn
+
+    return render
+
+
+def draw_u(frame: np.ndarray, step: dict, i: int) -> np.ndarray:
+    """The frame with a band on top: the score, what the stop reads, the threshold in force, STOPPED in red."""
+    from PIL import Image, ImageDraw
+
+    if step.get("score") is None:  # a policy without a score
+        return frame
+    value = float(step.get("stop_value", step["u"])[i])
+    threshold = step["gamma"] if step.get("thresholds") is None else float(step["thresholds"][i])
+    stopped = bool(step["stopped"][i])
+    image = Image.fromarray(np.ascontiguousarray(frame))
+    draw = ImageDraw.Draw(image)
+    band = max(12, frame.shape[0] // 12)
+    draw.rectangle([0, 0, frame.shape[1], band], fill=(150, 0, 0) if stopped else (0, 0, 0))
+    text = f"{step['score']} u {value:.2f} / threshold {threshold:.2f}" + ("  STOPPED" if stopped else "")
+    draw.text((3, max(band // 2 - 5, 0)), text, fill=(255, 255, 255))
+    if threshold and np.isfinite(threshold) and np.isfinite(value):
+        width = int(min(value / threshold, 2.0) / 2.0 * frame.shape[1])  # the threshold at half the width
+        draw.rectangle([0, band, width, band + 3], fill=(255, 80, 80) if value > threshold else (80, 200, 80))
+    return np.asarray(image)
+
+
+def _info_flags(info: dict, key: str, n_envs: int) -> np.ndarray:
+    """A per-env boolean of a vector env's step `info` (False where an env did not report it), also read from
+    `final_info` where a sub-env ended at this step."""
+    flags = np.zeros(n_envs, dtype=bool)
+    for source in (info, info.get("final_info")):
+        if isinstance(source, dict) and key in source:
+            values = np.asarray(source[key]).reshape(-1)
+            mask = np.asarray(source.get(f"_{key}", np.ones(len(values), dtype=bool))).reshape(-1)
+            if len(values) == n_envs:
+                flags |= values.astype(bool) & mask.astype(bool)
+    return flags
 
 
 def summarize(episodes: list[dict[str, Any]], eval_info: dict) -> dict:
@@ -170,6 +266,7 @@ def summarize(episodes: list[dict[str, Any]], eval_info: dict) -> dict:
                 "stopped_steps": int(ep["stopped"].sum()),
                 # the first step of a terminal stop (safety.max_hold_steps): only policy.resume() ends it
                 "halted_at": int(np.argmax(ep["halted"])) if ep.get("halted", np.zeros(0)).any() else None,
+                "grasp_missed_at": ep.get("grasp_missed_at"),
             }
         )
 
@@ -239,6 +336,7 @@ def write_trace(episodes: list[dict[str, Any]], path: Path) -> None:
                         int(ep["stopped"][t]),
                         int(ep["just_stopped"][t]),
                         f"{ep['threshold'][t]:.6g}" if "threshold" in ep else "",
+                        f"{ep['stop_value'][t]:.6g}" if "stop_value" in ep else "",
                     ]
                 )
 
@@ -296,10 +394,11 @@ def eval_with_uncertainty(cfg: EvalPipelineConfig) -> dict:
     info["policy_path"] = str(cfg.policy.pretrained_path) if cfg.policy.pretrained_path else None
     (out / "uncertainty_info.json").write_text(json.dumps(info, indent=2))
     write_trace(episodes, out / "uncertainty_trace.csv")
+    pictures = write_pictures(episodes, info, out / "pictures")
     o = info["overall"]
     logger.info(
         "Uncertainty over %d episodes: mean u %s, mean max u %s, gamma %s (stop %s); %d episodes with a stop. "
-        "Written to %s",
+        "Written to %s, one picture per episode in %s",
         o["n_episodes"],
         _fmt(o["u_mean"]),
         _fmt(o["u_max_mean"]),
@@ -307,6 +406,7 @@ def eval_with_uncertainty(cfg: EvalPipelineConfig) -> dict:
         "on" if info["safety_enabled"] else "off",
         o["episodes_with_stop"],
         out / "uncertainty_info.json",
+        pictures,
     )
     return info
 

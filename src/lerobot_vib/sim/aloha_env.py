@@ -75,6 +75,6 @@ class FastAlohaEnv(AlohaEnv):
 
     def _format_raw_obs(self, raw_obs: dict) -> dict:
         return {
-            "pixels": {cam: self.image_perturbation(raw_obs["images"][cam].copy()) for cam in self.cameras},
+            "pixels": {cam: self.image_perturbation(raw_obs["images"][cam].copy(), cam) for cam in self.cameras},
             "agent_pos": raw_obs["qpos"],
         }

@@ -13,6 +13,11 @@ Either way a policy must see the block: the gripper's opening leaves about 1.5 c
 Reward per step: 0, 0.5 while both fingers touch the block, 1 while the block is lifted (its bottom at
 least `LIFT_SUCCESS` above the table). Success, which ends the episode: lifted for `HOLD_STEPS` steps in a
 row.
+
+A missed grasp, the moment an episode's failure can be read from the simulator: the gripper closed past half
+the block's width (`MISSED_CLOSURE`; a block held between the fingers keeps them at its width) with no finger
+on the block. `info["grasp_missed"]` is true at every such step; failure prediction measures its lead time
+against the first one.
 """
 
 from __future__ import annotations
@@ -46,6 +51,7 @@ EPISODE_LENGTH = 100
 SUBSTEPS = 25  # 0.002 s physics steps per 0.05 s control step
 LIFT_SUCCESS = 0.04
 HOLD_STEPS = 5
+MISSED_CLOSURE = 0.5  # opening (1 open) below this share of the block's width: nothing is between the fingers
 # The occluder's pose (position, quaternion) for each fixed camera: about 45% of the way from the camera to
 # the workspace's centre, its broad face towards the camera, so it hides the block and the gripper.
 OCCLUDER_POSES = {
@@ -191,7 +197,7 @@ class ArmGraspEnv(gym.Env):
         self.step_count = self.lifted_steps = 0
         self._place_scene_perturbations()
         mujoco.mj_forward(self.model, self.data)
-        return self._observation(), {"is_success": False}
+        return self._observation(), {"is_success": False, "grasp_missed": False}
 
     def step(self, action):
         action = np.asarray(action, dtype=np.float64)
@@ -207,7 +213,14 @@ class ArmGraspEnv(gym.Env):
         self.lifted_steps = self.lifted_steps + 1 if lifted else 0
         reward = 1.0 if lifted else 0.5 if self.fingers_touch_block() else 0.0
         success = self.lifted_steps >= HOLD_STEPS
-        return self._observation(), reward, success, False, {"is_success": success}
+        info = {"is_success": success, "grasp_missed": self.grasp_missed()}
+        return self._observation(), reward, success, False, info
+
+    def grasp_missed(self) -> bool:
+        """The gripper is closed past the block's width and does not touch it (the module docstring)."""
+        opening = self.data.qpos[self._finger] / FINGER_TRAVEL
+        closed_past_block = opening < MISSED_CLOSURE * self.block_half / FINGER_TRAVEL
+        return bool(closed_past_block and not self.fingers_touch_block())
 
     def block_height(self) -> float:
         return float(self.data.qpos[self._block_qadr + 2])
@@ -251,7 +264,7 @@ class ArmGraspEnv(gym.Env):
 
     def _observation(self) -> dict:
         state = np.append(self.data.qpos[self._qadr], self.data.qpos[self._finger] / FINGER_TRAVEL)
-        pixels = {c: self.image_perturbation(self._render(c, self.height, self.width)) for c in self.cameras}
+        pixels = {c: self.image_perturbation(self._render(c, self.height, self.width), c) for c in self.cameras}
         return {"pixels": pixels, "agent_pos": state}
 
     def render(self) -> np.ndarray:

@@ -5,7 +5,11 @@ Image perturbations (any env that returns camera images, ALOHA included), applie
     Gaussian noise:  x' = clip(x / 255 + n, 0, 1) * 255,   n ~ N(0, sigma^2) per pixel and frame,
                      sigma drawn once per episode from `noise_std` (the paper's set is {0, 0.05, 0.1});
     colour jitter:   torchvision's ColorJitter(b, c, s, h) with every strength `color_jitter` (paper: 0.2),
-                     applied with probability `color_jitter_p` (paper: 0.5), its factors drawn once per episode.
+                     applied with probability `color_jitter_p` (paper: 0.5), its factors drawn once per episode;
+    black:           x' = 0 (a control: does the policy need vision at all?);
+    dim:             x' = round(x * dim), dim < 1 (an under-exposed camera);
+    frozen:          from frame `frozen_from` on, every frame repeats that one while the arm moves (a camera
+                     driver that stopped delivering new images).
 
 Scene perturbations (the simulated arm only, rendered by MuJoCo): camera shake (the scene camera's pose
 jitters every step), an unseen block (another colour and size), and an occluder (a board between the camera
@@ -33,6 +37,9 @@ class PerturbationConfig:
         The paper's colour condition is 0.2.
     color_jitter_p: Probability that an episode is colour-jittered (when `color_jitter` > 0).
     black_images: Replace every camera image by a black one: a control showing whether a policy needs vision.
+    dim: Multiply every camera image by this factor in (0, 1]; 1 is off. The `dim` condition is 0.45.
+    frozen_from: From this frame of the episode on (0 is the reset's), each camera repeats that frame: the
+        image stops changing while the arm moves. None is off; the `frozen` condition is 20.
     camera_shake: Fixed-camera shake amplitude: a uniform offset of up to this many metres along each axis
         and up to 10x this many radians about each axis, drawn every step for each fixed camera observed
         (`scene`, `overhead`). 0 is off. Simulated arm only.
@@ -47,6 +54,8 @@ class PerturbationConfig:
     color_jitter: float = 0.0
     color_jitter_p: float = 0.5
     black_images: bool = False
+    dim: float = 1.0
+    frozen_from: int | None = None
     camera_shake: float = 0.0
     unseen_block: bool = False
     occlusion: bool = False
@@ -62,6 +71,10 @@ class PerturbationConfig:
             raise ValueError(f"`color_jitter_p` must be a probability, got {self.color_jitter_p}.")
         if not 0 <= self.camera_shake <= 0.1:
             raise ValueError(f"`camera_shake` must be in [0, 0.1] metres, got {self.camera_shake}.")
+        if not 0 < self.dim <= 1:
+            raise ValueError(f"`dim` must be in (0, 1] (1 is off), got {self.dim}.")
+        if self.frozen_from is not None and self.frozen_from < 0:
+            raise ValueError(f"`frozen_from` must be a frame index >= 0 or None, got {self.frozen_from}.")
         for name in ("occlusion_start", "occlusion_duration"):
             value = getattr(self, name)
             if value is not None and (value < 0 or (name == "occlusion_duration" and value == 0)):
@@ -82,21 +95,26 @@ class PerturbationConfig:
 
     @property
     def is_clean(self) -> bool:
-        images = max(self.noise_std) > 0 or self.color_jitter > 0 or self.black_images
+        images = max(self.noise_std) > 0 or self.color_jitter > 0 or self.black_images or self.dim < 1
+        images = images or self.frozen_from is not None
         return not images and not self.scene_perturbations
 
 
 class ImagePerturbation:
-    """Gaussian noise and colour jitter for one env; `reset(seed)` draws an episode's parameters."""
+    """The image perturbations of one env; `reset(seed)` draws an episode's parameters. Each call is the
+    next frame of the camera it names (frames are counted per camera from the reset, for `frozen_from`)."""
 
     def __init__(self, config: PerturbationConfig):
         self.config = config
         self.noise_std = 0.0
         self.jitter: tuple | None = None
         self.rng = np.random.default_rng()
+        self._frames: dict[str, int] = {}
+        self._frozen: dict[str, np.ndarray] = {}
 
     def reset(self, seed: int | None) -> None:
         self.rng = np.random.default_rng(None if seed is None else [seed, IMAGE_SALT])
+        self._frames, self._frozen = {}, {}
         self.noise_std = float(self.rng.choice(self.config.noise_std))
         self.jitter = None
         strength = self.config.color_jitter
@@ -114,18 +132,32 @@ class ImagePerturbation:
     def active(self) -> bool:
         return self.noise_std > 0 or self.jitter is not None
 
-    def __call__(self, image: np.ndarray) -> np.ndarray:
-        """`image`: HxWx3 uint8. Returns a new HxWx3 uint8 array (the input is left as it is)."""
+    def __call__(self, image: np.ndarray, camera: str = "") -> np.ndarray:
+        """`image`: HxWx3 uint8, the next frame of `camera`. Returns a new HxWx3 uint8 array (the input is left
+        as it is)."""
+        frame = self._frames.get(camera, 0)
+        self._frames[camera] = frame + 1
+        frozen_from = self.config.frozen_from
+        if frozen_from is not None and frame > frozen_from and camera in self._frozen:
+            return self._frozen[camera].copy()
+        out = self._perturbed(image)
+        if frozen_from is not None and frame == frozen_from:
+            self._frozen[camera] = out.copy()
+        return out
+
+    def _perturbed(self, image: np.ndarray) -> np.ndarray:
         if self.config.black_images:
             return np.zeros_like(image)
-        if not self.active:
-            return image
         out = image
+        if self.config.dim < 1:
+            out = (out.astype(np.float32) * self.config.dim).round().astype(np.uint8)
+        if not self.active:
+            return out
         if self.jitter is not None:
             from torchvision.transforms.v2 import functional as TF
 
             order, brightness, contrast, saturation, hue = self.jitter
-            x = torch.from_numpy(np.ascontiguousarray(image)).permute(2, 0, 1)
+            x = torch.from_numpy(np.ascontiguousarray(out)).permute(2, 0, 1)
             for i in order.tolist():  # torchvision's own random order of the four adjustments
                 if i == 0:
                     x = TF.adjust_brightness(x, brightness)
@@ -171,6 +203,10 @@ CONDITIONS: dict[str, PerturbationConfig] = {
     "camera_shake": PerturbationConfig(camera_shake=0.005),
     "unseen_block": PerturbationConfig(unseen_block=True),
     "occlusion": PerturbationConfig(occlusion=True),
+    # Beyond the paper: a camera that shows nothing, too little light, or stopped delivering new frames.
+    "black": PerturbationConfig(black_images=True),
+    "dim": PerturbationConfig(dim=0.45),
+    "frozen": PerturbationConfig(frozen_from=20),
 }
 SCENE_CONDITIONS = ("camera_shake", "unseen_block", "occlusion")  # these need the simulated arm
 

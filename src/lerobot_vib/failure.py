@@ -1,0 +1,304 @@
+"""Failure prediction per episode: will this episode fail, and how early is it known?
+
+Ground truth. An episode fails when it is not solved by its end. Failed episodes are the positives and
+successful ones the negatives, perturbed successes included: an alarm on an episode the policy handles is a
+false alarm, however strange its images. Where the simulator shows it, the *failure moment* is the first
+missed grasp (`info["grasp_missed"]`, arm_env.py), and the lead time is measured against it.
+
+Monitor. One score's u_t per step (u = s / s_bar, as the stop reads it), smoothed over a window of w steps:
+
+    m_t = mean(u_{t-w+1..t})   or   sum(u_{t-w+1..t})        (only the steps so far in the episode's first w)
+
+It alarms at its first step with m_t > tau_t, a non-finite m_t included (unknown means stop). A combination
+alarms at the first step at which every member is above its own threshold: FIPER's AND of two scores.
+
+Calibration, by split-conformal prediction on successful clean rollouts only, at a false-alarm level alpha:
+
+    constant   tau   = the ceil((n + 1)(1 - alpha))-th smallest of max_t m_t over the n calibration episodes
+    band       tau_t = q b_t: b_t the mean of m_t over every other calibration episode (the shape), q the
+               conformal threshold of max_t m_t / b_t over the others (metrics.time_indexed_band), a
+               time-varying band as FAIL-Detect calibrates one
+
+so that a successful clean episode exchangeable with the calibration ones alarms with probability at most
+alpha. The members of an AND are each calibrated at alpha; the AND alarms no more often than any of them.
+
+Metrics over a set of episodes: TPR (failures alarmed), TNR (successes not alarmed), accuracy, balanced
+accuracy (TPR + TNR) / 2; detection time, the first alarm's step over the episode's length, in alarmed
+failures; lead time, the failure moment minus the first alarm's step (positive: the alarm came first), in
+alarmed failures that have a failure moment.
+"""
+
+from __future__ import annotations
+
+import itertools
+import math
+from collections.abc import Sequence
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from .calibration import conformal_gamma, conformal_min_scores
+from .metrics import time_indexed_band
+
+AGGREGATES = ("mean", "sum")
+THRESHOLDS = ("constant", "band")
+CLEAN = "normal"
+
+
+class CalibrationError(ValueError):
+    """A monitor cannot be calibrated on the given rollouts (too few successful clean ones, a missing score)."""
+
+
+@dataclass(frozen=True)
+class Monitor:
+    """What raises an alarm: the scores (one, or several joined by AND), the window and how it aggregates,
+    and the kind of threshold."""
+
+    scores: tuple[str, ...]
+    window: int = 1
+    aggregate: str = "mean"
+    threshold: str = "constant"
+
+    def __post_init__(self):
+        if not self.scores or len(set(self.scores)) != len(self.scores):
+            raise ValueError(f"A monitor needs distinct scores, got {self.scores}.")
+        if self.window < 1:
+            raise ValueError(f"A monitor's window must be >= 1 step, got {self.window}.")
+        if self.aggregate not in AGGREGATES:
+            raise ValueError(f"aggregate must be one of {AGGREGATES}, got {self.aggregate!r}.")
+        if self.threshold not in THRESHOLDS:
+            raise ValueError(f"threshold must be one of {THRESHOLDS}, got {self.threshold!r}.")
+
+    @property
+    def name(self) -> str:
+        return f"{' & '.join(self.scores)}, w={self.window} {self.aggregate}, {self.threshold}"
+
+    def as_dict(self) -> dict:
+        return {"scores": list(self.scores), "window": self.window, "aggregate": self.aggregate,
+                "threshold": self.threshold}  # fmt: skip
+
+    @staticmethod
+    def from_dict(d: dict) -> Monitor:
+        return Monitor(tuple(d["scores"]), int(d["window"]), d["aggregate"], d["threshold"])
+
+
+@dataclass
+class Episode:
+    """What failure prediction reads of one rollout (recorded with the stop off)."""
+
+    success: bool
+    scores: dict[str, np.ndarray]  # u per step, by score
+    condition: str = CLEAN
+    failure_moment: int | None = None  # the first missed grasp's step; None: none, or not measurable
+    seed: int | None = None
+
+    @property
+    def length(self) -> int:
+        return max((len(v) for v in self.scores.values()), default=0)
+
+
+def windowed(u: Sequence[float], window: int, aggregate: str = "mean") -> np.ndarray:
+    """m_t over the last `window` steps of `u` (the module docstring); a non-finite u_t makes m_t non-finite."""
+    u = np.asarray(u, dtype=np.float64)
+    if window == 1:
+        return u.copy()
+    csum = np.concatenate([[0.0], np.cumsum(u)])
+    t = np.arange(1, len(u) + 1)
+    start = np.maximum(t - window, 0)
+    total = csum[t] - csum[start]
+    return total / (t - start) if aggregate == "mean" else total
+
+
+def candidate_monitors(
+    scores: Sequence[str],
+    windows: Sequence[int] = (1, 5, 10),
+    aggregates: Sequence[str] = AGGREGATES,
+    thresholds: Sequence[str] = THRESHOLDS,
+    pairs: bool = True,
+) -> list[Monitor]:
+    """Every single score and, with `pairs`, every AND of two, at every window, aggregate and threshold (a
+    window of 1 aggregates one way only)."""
+    groups = [(s,) for s in scores] + (list(itertools.combinations(scores, 2)) if pairs else [])
+    out = []
+    for group in groups:
+        for w in windows:
+            for agg in aggregates if w > 1 else ("mean",):
+                out += [Monitor(tuple(group), w, agg, th) for th in thresholds]
+    return out
+
+
+@dataclass
+class CalibratedMonitor:
+    monitor: Monitor
+    alpha: float
+    thresholds: dict[str, float | np.ndarray]  # per member score: a constant, or a band (one per step)
+    n_calibration: int  # successful clean rollouts it was calibrated on
+    calibration_seeds: list[int | None] = field(default_factory=list)
+
+    def trace(self, episode: Episode, score: str) -> np.ndarray:
+        if score not in episode.scores:
+            raise CalibrationError(f"The episode has no {score!r} trace; it has {sorted(episode.scores)}.")
+        return windowed(episode.scores[score], self.monitor.window, self.monitor.aggregate)
+
+    def above(self, episode: Episode) -> np.ndarray:
+        """(T,) bool: every member above its threshold (or not finite) at each step."""
+        length = episode.length
+        hit = np.ones(length, dtype=bool)
+        for score in self.monitor.scores:
+            m = self.trace(episode, score)
+            tau = _band_for(self.thresholds[score], length)
+            hit &= ~np.isfinite(m) | (m > tau)
+        return hit
+
+    def alarm(self, episode: Episode) -> int | None:
+        """The first alarm's step; None if it never fires."""
+        hit = np.flatnonzero(self.above(episode))
+        return int(hit[0]) if len(hit) else None
+
+    def as_dict(self) -> dict:
+        return {
+            "monitor": self.monitor.as_dict(),
+            "alpha": self.alpha,
+            "thresholds": {k: np.round(np.asarray(v, dtype=float), 6).tolist() for k, v in self.thresholds.items()},
+            "n_calibration": self.n_calibration,
+            "calibration_seeds": self.calibration_seeds,
+        }
+
+
+def _band_for(tau: float | np.ndarray, length: int) -> np.ndarray:
+    tau = np.asarray(tau, dtype=np.float64)
+    if tau.ndim == 0:
+        return np.full(length, float(tau))
+    return np.concatenate([tau, np.full(max(length - len(tau), 0), tau[-1])])[:length]
+
+
+def calibration_episodes(episodes: Sequence[Episode]) -> list[Episode]:
+    """The rollouts a threshold may be set on: successful and clean, nothing else."""
+    return [e for e in episodes if e.success and e.condition == CLEAN]
+
+
+def calibrate_monitor(monitor: Monitor, episodes: Sequence[Episode], alpha: float) -> CalibratedMonitor:
+    """Thresholds of `monitor` at level `alpha` from the successful clean ones among `episodes` (the others
+    are ignored: failures and perturbed rollouts never set a threshold)."""
+    calib = calibration_episodes(episodes)
+    needed = conformal_min_scores(alpha) * (2 if monitor.threshold == "band" else 1)
+    if len(calib) < needed:
+        raise CalibrationError(
+            f"{monitor.name} at alpha={alpha} needs {needed} successful clean rollouts; got {len(calib)}."
+        )
+    probe = CalibratedMonitor(monitor, alpha, {}, len(calib))
+    thresholds: dict[str, float | np.ndarray] = {}
+    for score in monitor.scores:
+        traces = [probe.trace(e, score) for e in calib]
+        if not all(np.isfinite(t).all() and len(t) for t in traces):
+            raise CalibrationError(f"{score!r} is missing or not finite on a calibration rollout.")
+        if monitor.threshold == "constant":
+            thresholds[score] = conformal_gamma(np.array([t.max() for t in traces]), alpha)
+        else:
+            if min(float(t.min()) for t in traces) <= 0:
+                raise CalibrationError(f"A band needs a positive score; {score!r} is not on every step.")
+            thresholds[score] = time_indexed_band(traces[0::2], traces[1::2], alpha)
+    return CalibratedMonitor(monitor, alpha, thresholds, len(calib), [e.seed for e in calib])
+
+
+@dataclass
+class FailureMetrics:
+    n_failed: int
+    n_succeeded: int
+    alarmed_failed: int
+    alarmed_succeeded: int
+    detection_times: list[float]  # per alarmed failure: first alarm step / episode length
+    lead_times: list[int]  # per alarmed failure with a failure moment: moment - first alarm step
+
+    @property
+    def tpr(self) -> float | None:
+        return self.alarmed_failed / self.n_failed if self.n_failed else None
+
+    @property
+    def tnr(self) -> float | None:
+        return 1 - self.alarmed_succeeded / self.n_succeeded if self.n_succeeded else None
+
+    @property
+    def accuracy(self) -> float | None:
+        n = self.n_failed + self.n_succeeded
+        correct = self.alarmed_failed + self.n_succeeded - self.alarmed_succeeded
+        return correct / n if n else None
+
+    @property
+    def balanced_accuracy(self) -> float | None:
+        if self.tpr is None or self.tnr is None:
+            return None
+        return (self.tpr + self.tnr) / 2
+
+    @property
+    def detection_time(self) -> float | None:
+        return float(np.mean(self.detection_times)) if self.detection_times else None
+
+    @property
+    def median_lead_time(self) -> float | None:
+        return float(np.median(self.lead_times)) if self.lead_times else None
+
+    def as_dict(self) -> dict:
+        return {
+            "n_failed": self.n_failed,
+            "n_succeeded": self.n_succeeded,
+            "alarmed_failed": self.alarmed_failed,
+            "alarmed_succeeded": self.alarmed_succeeded,
+            "tpr": self.tpr,
+            "tnr": self.tnr,
+            "accuracy": self.accuracy,
+            "balanced_accuracy": self.balanced_accuracy,
+            "detection_time": self.detection_time,
+            "median_lead_time": self.median_lead_time,
+            "n_lead_times": len(self.lead_times),
+        }
+
+
+def evaluate(calibrated: CalibratedMonitor, episodes: Sequence[Episode]) -> FailureMetrics:
+    """The monitor's alarms judged against each episode's outcome (the module docstring's metrics)."""
+    failed = [e for e in episodes if not e.success]
+    succeeded = [e for e in episodes if e.success]
+    detection, lead, alarmed_failed = [], [], 0
+    for e in failed:
+        t = calibrated.alarm(e)
+        if t is None:
+            continue
+        alarmed_failed += 1
+        detection.append(t / max(e.length, 1))
+        if e.failure_moment is not None:
+            lead.append(int(e.failure_moment) - t)
+    alarmed_succeeded = sum(calibrated.alarm(e) is not None for e in succeeded)
+    return FailureMetrics(len(failed), len(succeeded), alarmed_failed, alarmed_succeeded, detection, lead)
+
+
+def choose_monitor(
+    candidates: Sequence[Monitor], validation: dict[object, Sequence[Episode]], alpha: float
+) -> tuple[Monitor | None, list[dict]]:
+    """The candidate with the best balanced accuracy on the validation rollouts, averaged over the groups of
+    `validation` (one per training seed, each calibrated on its own successful clean rollouts); a tie goes to
+    the earlier detection, then to the one listed first. Returns it (None: none could be calibrated) and every
+    candidate's row, best first. Only validation rollouts are read."""
+    rows = []
+    for i, monitor in enumerate(candidates):
+        per_group = []
+        for episodes in validation.values():
+            try:
+                per_group.append(evaluate(calibrate_monitor(monitor, episodes, alpha), episodes))
+            except CalibrationError:
+                per_group = []
+                break
+        if not per_group or any(m.balanced_accuracy is None for m in per_group):
+            continue
+        detection = [m.detection_time for m in per_group if m.detection_time is not None]
+        rows.append(
+            {
+                "monitor": monitor,
+                "order": i,
+                "balanced_accuracy": float(np.mean([m.balanced_accuracy for m in per_group])),
+                "tpr": float(np.mean([m.tpr for m in per_group])),
+                "tnr": float(np.mean([m.tnr for m in per_group])),
+                "detection_time": float(np.mean(detection)) if detection else math.inf,
+            }
+        )
+    rows.sort(key=lambda r: (-r["balanced_accuracy"], r["detection_time"], r["order"]))
+    return (rows[0]["monitor"] if rows else None), rows

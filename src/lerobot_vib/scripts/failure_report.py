@@ -1,0 +1,342 @@
+"""The benchmark report's failure prediction (failure.py), from the cells `lerobot-vib-benchmark` saved.
+
+Per scored VIB row whose cells hold every score (`--calibrate=true`):
+
+1. validation: each training seed's validation rollouts at the row's chosen run time, clean and (with
+   `--failure_validation`) under every perturbed condition. Every candidate monitor (failure.candidate_monitors
+   over the scores the cells hold) is calibrated on that seed's successful clean ones at `alpha` and judged on
+   all of them, ranked by balanced accuracy averaged over the seeds. The best single-score one ships (the
+   policy's stop reads one score); a better AND is reported beside it.
+2. test: the shipped monitor, each seed calibrated on its own validation successes, judged on every test
+   cell: per condition, pooled over conditions and seeds, and at every level of `failure_alphas` (the
+   TPR-against-TNR curve). Beside it, for reference: each score alone at one step with a constant threshold
+   (the stop as it is), and the best FIPER-like AND (embedding RND and chunk disagreement) on validation.
+
+Nothing on the test seeds chooses anything.
+"""
+
+from __future__ import annotations
+
+import math
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from ..failure import (
+    CalibrationError,
+    Episode,
+    FailureMetrics,
+    Monitor,
+    calibrate_monitor,
+    calibration_episodes,
+    candidate_monitors,
+    choose_monitor,
+    evaluate,
+)
+
+VALIDATION = "validation"
+PERTURBED = "validation:"  # + a condition: validation rollouts under it (benchmark.PERTURBED)
+BENIGN = ("gaussian", "color")  # perturbations the policy mostly handles: a stop there costs success
+FIPER_PAIR = ("embedding_rnd", "chunk_disagreement")
+# Published figures, on their own tasks and policies (not this arm): what the targets are set against.
+PUBLISHED = [
+    ("FIPER (Römer et al., NeurIPS 2025), with its conformal guarantee", 0.72, 0.84, 0.47, None),
+    ("FIPER, its best setting, no guarantee", 0.92, 0.65, 0.30, None),
+    ("FAIL-Detect (Xu et al., RSS 2025), simulation", None, None, None, 0.78),
+    ("FAIL-Detect, hardware", None, None, None, 0.72),
+]
+TARGETS = {"tpr": 0.90, "tnr": 0.90, "detection_time": 0.30, "benign_stopped": 0.10}
+
+
+def cell_episodes(cell: dict) -> list[Episode]:
+    """The cell's rollouts as failure.Episode (its `scores`: u per step of every score)."""
+    scores = cell.get("scores") or {}
+    missed = cell.get("grasp_missed_at") or [None] * len(cell["success"])
+    return [
+        Episode(
+            success=bool(ok),
+            scores={name: np.asarray(traces[i], dtype=np.float64) for name, traces in scores.items()},
+            condition="normal" if cell["condition"] == VALIDATION else cell["condition"].removeprefix(PERTURBED),
+            failure_moment=missed[i],
+            seed=cell["seeds"][i],
+        )
+        for i, ok in enumerate(cell["success"])
+    ]
+
+
+def _test_metrics(monitor: Monitor, validation: dict, test: dict, alpha: float) -> dict | None:
+    """Per condition and pooled over conditions and seeds; None if a seed cannot be calibrated."""
+    calibrated = {}
+    for seed, episodes in validation.items():
+        try:
+            calibrated[seed] = calibrate_monitor(monitor, episodes, alpha)
+        except CalibrationError:
+            return None
+    conditions = sorted({c for by_condition in test.values() for c in by_condition})
+    out: dict[str, Any] = {"per_condition": {}, "thresholds": {str(s): c.as_dict() for s, c in calibrated.items()}}
+    pooled, benign = [], []
+    for condition in conditions:
+        per = [
+            (calibrated[s], eps)
+            for s, by_c in test.items()
+            if s in calibrated
+            for c, eps in by_c.items()
+            if c == condition
+        ]
+        metrics = [evaluate(cal, eps) for cal, eps in per]
+        out["per_condition"][condition] = _pool(metrics).as_dict()
+        pooled += metrics
+        if condition in BENIGN:
+            benign += metrics
+    out["pooled"] = _pool(pooled).as_dict()
+    b = _pool(benign)
+    out["benign_stopped"] = b.alarmed_succeeded / b.n_succeeded if b.n_succeeded else None
+    out["benign_successes"] = b.n_succeeded
+    return out
+
+
+def _pool(metrics: list[FailureMetrics]) -> FailureMetrics:
+    return FailureMetrics(
+        sum(m.n_failed for m in metrics),
+        sum(m.n_succeeded for m in metrics),
+        sum(m.alarmed_failed for m in metrics),
+        sum(m.alarmed_succeeded for m in metrics),
+        [t for m in metrics for t in m.detection_times],
+        [t for m in metrics for t in m.lead_times],
+    )
+
+
+def failure_prediction(cfg, cells: dict, runtime_of) -> dict:
+    """results["failure_prediction"]: per scored row, the validation ranking, the shipped monitor and its test
+    metrics. `runtime_of(variant, seed)`: the row's chosen run time at that training seed."""
+    out = {}
+    for variant in cfg.variants:
+        validation, test = {}, {}
+        for seed in cfg.train_seeds:
+            cell = cells.get((variant, VALIDATION, seed, runtime_of(variant, seed)))
+            if cell is None or not cell.get("scores"):
+                continue
+            validation[seed] = cell_episodes(cell) + [
+                e
+                for c in cfg.conditions
+                if (perturbed := cells.get((variant, PERTURBED + c, seed, None))) is not None
+                for e in cell_episodes(perturbed)
+            ]
+            test[seed] = {
+                c: cell_episodes(cells[(variant, c, seed, None)])
+                for c in cfg.conditions
+                if (variant, c, seed, None) in cells and cells[(variant, c, seed, None)].get("scores")
+            }
+        if not validation or not any(test.values()):
+            continue
+        names = sorted(set.intersection(*[set(e.scores) for eps in validation.values() for e in eps]))
+        candidates = candidate_monitors(names)
+        best, ranking = choose_monitor(candidates, validation, cfg.alpha)
+        # The policy's stop reads one score (its window and threshold from `lerobot-vib-calibrate --rollouts`):
+        # the best candidate it can run ships; an AND that ranks above it is reported beside it.
+        runnable = [r["monitor"] for r in ranking if len(r["monitor"].scores) == 1]
+        if best is None or not runnable:
+            out[variant] = {"error": "no monitor could be calibrated on the validation rollouts' successes"}
+            continue
+        shipped = runnable[0]
+        references = {f"{n} alone": Monitor((n,)) for n in names if Monitor((n,)) != shipped}
+        if "low_image_rate" in names:
+            references["the stop as shipped today"] = Monitor(("low_image_rate",), threshold="band")
+        fiper = [r["monitor"] for r in ranking if set(r["monitor"].scores) == set(FIPER_PAIR)]
+        if fiper:
+            references["FIPER-like: embedding RND AND chunk disagreement, best on validation"] = fiper[0]
+        if best != shipped:
+            references["the best candidate on validation, which the stop cannot run yet"] = best
+        result = {
+            "validation_seeds": {
+                str(s): [e.seed for e in eps][:1] + [e.seed for e in eps][-1:] for s, eps in validation.items()
+            },
+            "validation_episodes": {str(s): len(eps) for s, eps in validation.items()},
+            "validation_successes": {str(s): sum(e.success for e in eps) for s, eps in validation.items()},
+            "calibration_episodes": {str(s): len(calibration_episodes(eps)) for s, eps in validation.items()},
+            "candidates": len(candidates),
+            "ranking": [{**r, "monitor": r["monitor"].as_dict(), "name": r["monitor"].name} for r in ranking[:15]],
+            "shipped": {"monitor": shipped.as_dict(), "name": shipped.name, "alpha": cfg.alpha},
+            "test": _test_metrics(shipped, validation, test, cfg.alpha),
+            "sweep": {},
+            "references": {},
+        }
+        for label, monitor in {"shipped": shipped, **references}.items():
+            if label != "shipped":
+                result["references"][label] = {
+                    "name": monitor.name,
+                    "test": _test_metrics(monitor, validation, test, cfg.alpha),
+                }
+            result["sweep"][label] = {
+                str(a): (m or {}).get("pooled")
+                for a in cfg.failure_alphas
+                for m in [_test_metrics(monitor, validation, test, a)]
+            }
+        out[variant] = result
+    return out
+
+
+def _f(x: float | None, fmt: str = ".2f") -> str:
+    if x is None or (isinstance(x, float) and math.isnan(x)):
+        return "-"
+    text = format(x, fmt)
+    return text[1:] if text.startswith("-") and float(text) == 0 else text  # no "-0"
+
+
+def shipped_line(result: dict) -> str:
+    """The report's first line on failure prediction: what the shipped monitor measured on the test seeds."""
+    p = (result.get("test") or {}).get("pooled") or {}
+    return (
+        f"shipped monitor: TPR {_f(p.get('tpr'))}, TNR {_f(p.get('tnr'))}, detection time "
+        f"{_f(p.get('detection_time'))}, median lead time {_f(p.get('median_lead_time'), '.0f')} steps"
+    )
+
+
+def markdown(cfg, failure: dict, labels: dict[str, str]) -> list[str]:
+    lines: list[str] = []
+    for variant, result in failure.items():
+        lines += ["", f"## Failure prediction: {labels.get(variant, variant)}", ""]
+        if "error" in result:
+            lines += [result["error"] + "."]
+            continue
+        lines += [shipped_line(result), ""]
+        m = Monitor.from_dict(result["shipped"]["monitor"])
+        lines += [
+            "To ship it on a checkpoint: evaluate clean rollouts with `--policy.uncertainty_score="
+            f"{m.scores[0]}` and the stop off, then `lerobot-vib-calibrate --policy.path=<checkpoint> "
+            f"--policy.uncertainty_score={m.scores[0]} --rollouts=<their uncertainty_info.json> "
+            f"--conformal_alpha={cfg.alpha} --threshold={'max' if m.threshold == 'constant' else 'time_band'} "
+            f"--window={m.window} --window_aggregate={m.aggregate}`: the policy's stop then reads this monitor.",
+            "",
+        ]
+        best = result["references"].get("the best candidate on validation, which the stop cannot run yet")
+        if best is not None:
+            p = (best.get("test") or {}).get("pooled") or {}
+            lines += [
+                f"The best candidate on validation was **{best['name']}**, an AND of two scores, which the policy's "
+                f"stop cannot run yet (it reads one score); on the test seeds it measured TPR {_f(p.get('tpr'))}, "
+                f"TNR {_f(p.get('tnr'))}, detection time {_f(p.get('detection_time'))}, median lead time "
+                f"{_f(p.get('median_lead_time'), '.0f')} steps. The shipped monitor is the best single-score one.",
+                "",
+            ]
+        test = result["test"] or {}
+        pooled = test.get("pooled") or {}
+        lines += [
+            f"The shipped monitor is **{result['shipped']['name']}** at alpha = {cfg.alpha}, the best of the "
+            f"single-score ones among {result['candidates']} candidates (each score alone and every AND of two; "
+            "windows 1, 5, 10 steps; mean or sum; a constant threshold or a time-varying band) by its balanced "
+            "accuracy on the validation rollouts, clean and under every condition ("
+            + ", ".join(
+                f"seed {s}: {result['validation_successes'][s]} successes of {n}, "
+                f"{result['calibration_episodes'][s]} of them clean"
+                for s, n in result["validation_episodes"].items()
+            )
+            + "), each seed's thresholds set by split-conformal prediction on its own successful clean validation "
+            "rollouts only (with n of them the constant threshold is the ceil((n + 1)(1 - alpha))-th largest "
+            "maximum; a band needs twice the conformal minimum). Every number below is on the test seeds, which "
+            "nothing chose on. Failed episodes are the positives, successful ones (perturbed ones included) the "
+            "negatives; the failure moment is the first missed grasp (the gripper closed on nothing), where one "
+            "happened.",
+            "",
+            "| condition | failed / succeeded | TPR | TNR | accuracy | balanced accuracy | detection time | "
+            "median lead time (steps, n) |",
+            "| --- | --- | --- | --- | --- | --- | --- | --- |",
+        ]
+        for condition, m in [*test.get("per_condition", {}).items(), ("**pooled**", pooled)]:
+            lines.append(
+                f"| {condition} | {m['n_failed']} / {m['n_succeeded']} | {_f(m['tpr'])} | {_f(m['tnr'])} | "
+                f"{_f(m['accuracy'])} | {_f(m['balanced_accuracy'])} | {_f(m['detection_time'])} | "
+                f"{_f(m['median_lead_time'], '.0f')} ({m['n_lead_times']}) |"
+            )
+        benign = test.get("benign_stopped")
+        lines += [
+            "",
+            f"Successful noise and colour-jitter episodes stopped: {_f(benign)} of {test.get('benign_successes', 0)}.",
+            "",
+            "Against the published figures (their tasks and policies, not this arm, so a frame of reference rather "
+            "than a like-for-like comparison), and the targets:",
+            "",
+            "| monitor | TPR | TNR | detection time | balanced accuracy |",
+            "| --- | --- | --- | --- | --- |",
+            f"| this row's shipped monitor, alpha = {cfg.alpha}, pooled | {_f(pooled.get('tpr'))} | "
+            f"{_f(pooled.get('tnr'))} | {_f(pooled.get('detection_time'))} | {_f(pooled.get('balanced_accuracy'))} |",
+        ]
+        for label, ref in result["references"].items():
+            p = ((ref.get("test") or {}).get("pooled")) or {}
+            lines.append(
+                f"| {label}: {ref['name']} | {_f(p.get('tpr'))} | {_f(p.get('tnr'))} | "
+                f"{_f(p.get('detection_time'))} | {_f(p.get('balanced_accuracy'))} |"
+            )
+        for label, tpr, tnr, det, bacc in PUBLISHED:
+            lines.append(f"| {label} | {_f(tpr)} | {_f(tnr)} | {_f(det)} | {_f(bacc)} |")
+        if any(ref.get("test") is None for ref in result["references"].values()):
+            lines += ["", "A row of dashes could not be calibrated: too few successful clean validation rollouts."]
+        met = _targets(test)
+        lines += ["", "Targets (alpha = " + str(cfg.alpha) + ", pooled, test seeds): " + "; ".join(met) + "."]
+        lines += [
+            "",
+            "Validation ranking (the first 15 of the candidates; balanced accuracy averaged over the seeds):",
+            "",
+            "| monitor | balanced accuracy | TPR | TNR | detection time |",
+            "| --- | --- | --- | --- | --- |",
+        ]
+        for r in result["ranking"]:
+            lines.append(
+                f"| {r['name']} | {_f(r['balanced_accuracy'])} | {_f(r['tpr'])} | {_f(r['tnr'])} | "
+                f"{_f(r['detection_time'] if math.isfinite(r['detection_time']) else None)} |"
+            )
+    return lines
+
+
+def _targets(test: dict) -> list[str]:
+    pooled = test.get("pooled") or {}
+    checks = [
+        ("TPR >= 0.90", pooled.get("tpr"), lambda x: x >= TARGETS["tpr"]),
+        ("TNR >= 0.90", pooled.get("tnr"), lambda x: x >= TARGETS["tnr"]),
+        ("detection time <= 0.30", pooled.get("detection_time"), lambda x: x <= TARGETS["detection_time"]),
+        ("median lead time > 0", pooled.get("median_lead_time"), lambda x: x > 0),
+        ("benign successes stopped <= 10%", test.get("benign_stopped"), lambda x: x <= TARGETS["benign_stopped"]),
+    ]
+    return [f"{name}: {'met' if v is not None and ok(v) else 'not met'} ({_f(v)})" for name, v, ok in checks]
+
+
+def plot(failure: dict, out: Path, labels: dict[str, str]) -> list[str]:
+    """failure_roc.png: pooled test TPR against TNR as alpha sweeps, one line per monitor."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    rows = [(v, r) for v, r in failure.items() if "sweep" in r]
+    if not rows:
+        return []
+    fig, axes = plt.subplots(1, len(rows), figsize=(6 * len(rows), 5), squeeze=False)
+    for ax, (variant, result) in zip(axes[0], rows, strict=True):
+        for label, by_alpha in result["sweep"].items():
+            points = [
+                (p["tnr"], p["tpr"]) for p in by_alpha.values() if p and p["tnr"] is not None and p["tpr"] is not None
+            ]
+            if points:
+                x, y = zip(*points, strict=True)
+                name = result["shipped"]["name"] if label == "shipped" else result["references"][label]["name"]
+                ax.plot(
+                    x,
+                    y,
+                    "o-" if label == "shipped" else ".--",
+                    label=("shipped: " if label == "shipped" else "") + name,
+                    lw=2 if label == "shipped" else 1,
+                )
+        ax.plot([0.84], [0.72], "k*", ms=12, label="FIPER, published (its tasks)")
+        ax.set(
+            xlabel="TNR (successes not alarmed)",
+            ylabel="TPR (failures alarmed)",
+            xlim=(0, 1.02),
+            ylim=(0, 1.02),
+            title=f"{labels.get(variant, variant)}: alpha swept",
+        )
+        ax.legend(fontsize=6, loc="lower left")
+    fig.tight_layout()
+    fig.savefig(out / "failure_roc.png", dpi=120)
+    plt.close(fig)
+    return ["failure_roc.png"]

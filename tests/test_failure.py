@@ -1,0 +1,181 @@
+"""Failure prediction per episode (failure.py): monitors, their conformal calibration, the metrics, the choice,
+and the failure moment the simulated arm reports."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from lerobot_vib.failure import (
+    CalibrationError,
+    Episode,
+    Monitor,
+    calibrate_monitor,
+    candidate_monitors,
+    choose_monitor,
+    evaluate,
+    windowed,
+)
+
+RNG = np.random.default_rng(0)
+
+
+def episode(success: bool, condition: str = "normal", length: int = 50, level: float = 1.0, **extra) -> Episode:
+    base = {"a": level + 0.1 * RNG.random(length), "b": 1.0 + 0.1 * RNG.random(length)}
+    return Episode(success, {**base, **extra}, condition)
+
+
+def successes(n: int, **kw) -> list[Episode]:
+    return [episode(True, **kw) for _ in range(n)]
+
+
+def test_a_window_mean_and_sum_match_the_definition_including_the_first_steps():
+    u = np.array([1.0, 3.0, 5.0, 7.0])
+    np.testing.assert_allclose(windowed(u, 2, "mean"), [1.0, 2.0, 4.0, 6.0])
+    np.testing.assert_allclose(windowed(u, 3, "sum"), [1.0, 4.0, 9.0, 15.0])
+    np.testing.assert_allclose(windowed(u, 1), u)
+    assert np.isnan(windowed([1.0, np.nan, 1.0], 2)[1:]).all()  # unknown stays unknown in the window
+
+
+def test_a_monitor_that_fires_on_every_step_has_tpr_1_and_tnr_0():
+    calibrated = calibrate_monitor(Monitor(("a",)), successes(20), 0.1)
+    calibrated.thresholds["a"] = -1.0  # below every u: an alarm at the first step of every episode
+    metrics = evaluate(calibrated, [episode(False), episode(False), episode(True), episode(True, "gaussian")])
+    assert (metrics.tpr, metrics.tnr, metrics.accuracy, metrics.balanced_accuracy) == (1.0, 0.0, 0.5, 0.5)
+    assert metrics.detection_times == [0.0, 0.0]
+
+
+def test_a_monitor_that_never_fires_has_tpr_0_tnr_1_and_no_detection_time():
+    calibrated = calibrate_monitor(Monitor(("a",)), successes(20), 0.1)
+    calibrated.thresholds["a"] = np.inf
+    metrics = evaluate(calibrated, [episode(False), episode(True)])
+    assert (metrics.tpr, metrics.tnr, metrics.detection_time, metrics.median_lead_time) == (0.0, 1.0, None, None)
+
+
+@pytest.mark.parametrize("threshold", ["constant", "band"])
+def test_thresholds_are_set_only_on_successful_clean_rollouts(threshold):
+    clean = successes(30)
+    monitor = Monitor(("a",), window=5, threshold=threshold)
+    alone = calibrate_monitor(monitor, clean, 0.1)
+    others = [episode(False, level=50.0), episode(True, "occlusion", level=50.0), episode(False, "color", level=9.0)]
+    mixed = calibrate_monitor(monitor, [*others[:2], *clean, others[2]], 0.1)
+    np.testing.assert_array_equal(np.asarray(alone.thresholds["a"]), np.asarray(mixed.thresholds["a"]))
+    assert mixed.n_calibration == 30
+    with pytest.raises(CalibrationError, match="successful clean rollouts"):
+        calibrate_monitor(monitor, [*others, *successes(3)], 0.1)
+
+
+@pytest.mark.parametrize("threshold", ["constant", "band"])
+def test_a_successful_clean_episode_alarms_at_most_alpha_of_the_time(threshold):
+    # Exchangeable successes: over many draws of calibration and new episodes, the false-alarm rate <= alpha.
+    alpha, alarms, trials = 0.2, 0, 300
+    rng = np.random.default_rng(1)
+    for _ in range(trials):
+        calib = [Episode(True, {"a": 1 + rng.gamma(2.0, 0.1, 40)}) for _ in range(20)]
+        calibrated = calibrate_monitor(Monitor(("a",), 3, "mean", threshold), calib, alpha)
+        alarms += calibrated.alarm(Episode(True, {"a": 1 + rng.gamma(2.0, 0.1, 40)})) is not None
+    assert alarms / trials <= alpha + 0.05
+
+
+def test_an_and_monitor_fires_only_where_both_scores_are_above_their_thresholds():
+    calib = successes(20)
+    calibrated = calibrate_monitor(Monitor(("a", "b")), calib, 0.1)
+    only_a = Episode(False, {"a": np.full(50, 9.0), "b": np.ones(50)})
+    both = Episode(False, {"a": np.r_[np.ones(30), np.full(20, 9.0)], "b": np.r_[np.ones(40), np.full(10, 9.0)]})
+    assert calibrated.alarm(only_a) is None
+    assert calibrated.alarm(both) == 40
+
+
+def test_lead_time_is_positive_when_the_alarm_comes_before_the_missed_grasp():
+    calibrated = calibrate_monitor(Monitor(("a",)), successes(20), 0.1)
+    early = Episode(False, {"a": np.r_[np.ones(10), np.full(40, 9.0)], "b": np.ones(50)}, failure_moment=25)
+    late = Episode(False, {"a": np.r_[np.ones(30), np.full(20, 9.0)], "b": np.ones(50)}, failure_moment=25)
+    metrics = evaluate(calibrated, [early, late])
+    assert metrics.lead_times == [15, -5]
+    assert metrics.detection_times == [10 / 50, 30 / 50]
+
+
+def test_the_choice_prefers_the_score_that_rises_in_failures_and_reads_validation_only():
+    def val(seed_offset: int) -> list[Episode]:
+        eps = successes(24)
+        eps += [Episode(False, {"a": 1.0 + 0.1 * RNG.random(50), "b": np.r_[np.ones(20), np.full(30, 3.0)]})
+                for _ in range(8)]  # fmt: skip
+        return eps
+
+    candidates = candidate_monitors(["a", "b"], windows=(1, 5), pairs=True)
+    assert Monitor(("a", "b"), 5, "sum", "band") in candidates and Monitor(("a",), 1, "sum") not in candidates
+    chosen, ranking = choose_monitor(candidates, {1000: val(0), 2000: val(1)}, 0.1)
+    assert chosen.scores == ("b",)
+    assert ranking[0]["balanced_accuracy"] >= ranking[-1]["balanced_accuracy"]
+    assert ranking[0]["tpr"] == 1.0
+
+
+def test_a_monitor_refuses_a_window_below_one_step_and_unknown_kinds():
+    with pytest.raises(ValueError, match="window"):
+        Monitor(("a",), window=0)
+    with pytest.raises(ValueError, match="threshold"):
+        Monitor(("a",), threshold="quantile")
+    with pytest.raises(ValueError, match="distinct"):
+        Monitor(("a", "a"))
+    assert Monitor.from_dict(Monitor(("a", "b"), 5, "sum", "band").as_dict()) == Monitor(("a", "b"), 5, "sum", "band")
+
+
+def test_a_failure_moment_is_found_in_a_scripted_missed_grasp_and_never_in_a_scripted_grasp():
+    from lerobot_vib.sim.arm_env import EPISODE_LENGTH, ArmGraspEnv, block_pose
+    from lerobot_vib.sim.arm_scripted import plan_grasp
+
+    env = ArmGraspEnv(observation_height=24, observation_width=32, workspace="near", shadows=False)
+    try:
+        seen = {}
+        for offset in (0.0, 0.05):  # the plan aimed at the block, and 5 cm beside it
+            env.reset(seed=3)
+            xy, yaw = block_pose(3, "near")
+            target = np.array([xy[0], xy[1] + offset, env.block_half])
+            missed, success = [], False
+            for t, action in enumerate(plan_grasp(env.model, target, yaw, EPISODE_LENGTH, env.block_half).actions):
+                _, _, success, _, info = env.step(action)
+                if info["grasp_missed"]:
+                    missed.append(t)
+                if success:
+                    break
+            seen[offset] = (success, missed)
+    finally:
+        env.close()
+    assert seen[0.0] == (True, [])
+    success, missed = seen[0.05]
+    assert not success and missed and 50 <= missed[0] <= 60  # while the plan closes the gripper (steps 48-58)
+
+
+def test_the_report_ships_the_validation_choice_and_states_its_test_numbers_in_one_line(tmp_path):
+    from types import SimpleNamespace
+
+    from lerobot_vib.scripts import failure_report
+
+    rng = np.random.default_rng(3)
+
+    def cell(condition: str, n: int, fail_every: int, seed0: int) -> dict:
+        success = [i % fail_every != 0 for i in range(n)]
+        b = [np.r_[np.ones(20), np.full(30, 1.0 if ok else 4.0)] + 0.05 * rng.random(50) for ok in success]
+        return {
+            "condition": condition,
+            "seeds": list(range(seed0, seed0 + n)),
+            "success": success,
+            "scores": {"a": [(1 + 0.1 * rng.random(50)).tolist() for _ in success], "b": [x.tolist() for x in b]},
+            "grasp_missed_at": [None if ok else 45 for ok in success],
+        }
+
+    cfg = SimpleNamespace(variants=["vib_tokens"], train_seeds=[1000], conditions=["normal", "gaussian"],
+                          alpha=0.1, failure_alphas=[0.1, 0.3])  # fmt: skip
+    cells = {
+        ("vib_tokens", "validation", 1000, "act:0.3"): cell("validation", 40, 4, 400_000),
+        ("vib_tokens", "normal", 1000, None): cell("normal", 20, 3, 600_000),
+        ("vib_tokens", "gaussian", 1000, None): cell("gaussian", 20, 2, 600_000),
+    }
+    result = failure_report.failure_prediction(cfg, cells, lambda v, s: "act:0.3")["vib_tokens"]
+    assert result["shipped"]["monitor"]["scores"] == ["b"]
+    pooled = result["test"]["pooled"]
+    assert pooled["n_failed"] == 7 + 10 and pooled["tpr"] == 1.0 and pooled["median_lead_time"] > 0
+    lines = failure_report.markdown(cfg, {"vib_tokens": result}, {"vib_tokens": "VIB tokens"})
+    assert lines[3] == failure_report.shipped_line(result) and lines[3].startswith("shipped monitor: TPR 1.00")
+    assert any(line.startswith("| FIPER (Römer") for line in lines)
+    assert failure_report.plot({"vib_tokens": result}, tmp_path, {}) == ["failure_roc.png"]
