@@ -314,6 +314,28 @@ def test_a_windowed_threshold_is_set_on_the_windowed_u_of_the_clean_rollouts():
         gamma_from_rollouts(dataset, info, 0.1, "r.json", threshold="max", window=5)
 
 
+def test_an_and_of_scores_gets_each_members_threshold_from_the_same_clean_rollouts():
+    from lerobot_vib.configuration_vib import CalibrationConfig
+    from lerobot_vib.scripts.calibrate import gamma_from_rollouts
+
+    rng = np.random.default_rng(1)
+    traces = [1 + 0.1 * rng.random(30) for _ in range(20)]
+    partner = [2 + rng.random(30) for _ in range(20)]
+    dataset = CalibrationConfig(dataset_repo_id="local/arm", n_frames=100, rate_mean=2.0, rate_std=0.5,
+                                score_means={"embedding_rnd": 4.0})  # fmt: skip
+    info = {**_rollouts([float(t.max()) for t in traces], 2.0), "score_means": {"rate": 2.0, "embedding_rnd": 4.0}}
+    both = gamma_from_rollouts(dataset, info, 0.1, "r.json", threshold="max", traces=traces,
+                               and_traces={"embedding_rnd": partner})  # fmt: skip
+    assert both.and_gammas == {"embedding_rnd": pytest.approx(conformal_gamma([p.max() for p in partner], 0.1))}
+    assert both.gamma == pytest.approx(conformal_gamma([t.max() for t in traces], 0.1))
+    other = {**info, "score_means": {"rate": 2.0, "embedding_rnd": 5.0}}
+    with pytest.raises(VIBConfigError, match=r"normalized by 5\.0, this checkpoint's mean is 4\.0"):
+        gamma_from_rollouts(dataset, other, 0.1, "r.json", threshold="max", traces=traces,
+                            and_traces={"embedding_rnd": partner})  # fmt: skip
+    with pytest.raises(VIBConfigError, match="repeats the stop's own score"):
+        gamma_from_rollouts(dataset, info, 0.1, "r.json", threshold="max", traces=traces, and_traces={"rate": traces})
+
+
 def _perturbed(**perturbation) -> dict:
     return {**CLEAN_ARM, "perturbation": {"noise_std": [0.0], **perturbation}}
 

@@ -432,3 +432,38 @@ def test_a_stop_on_a_windowed_u_ignores_a_one_frame_spike_and_catches_a_sustaine
     if window == 3:
         assert values[2] == pytest.approx(2.0) and values[8] == pytest.approx(2.6)  # (1 + 1 + 4) / 3, then 2.6
         assert float(policy.last_step.u[0]) == pytest.approx(2.6)  # Eq. 6 still reads u itself
+
+
+def test_an_and_stop_fires_only_while_both_scores_are_above_and_ends_when_either_falls():
+    """FIPER's AND in the policy: the rate (gamma 2) and the image rate (its own threshold 2) must both be up."""
+    config = make_config(uncertainty_score="rate")
+    policy = with_rate_statistics(VIBPolicy(config))
+    c = policy.config.calibration
+    c.gamma, c.gamma_score, c.gamma_method, c.and_gammas = 2.0, "rate", "conformal_rollouts", {"image_rate": 2.0}
+    c.score_means = {"image_rate": 1.0}
+    policy.config.safety.enabled, policy.config.safety.resume_steps = True, 1
+    r_bar, real = policy.rate_mean(), policy.observation_scores
+    script = iter([(3.0, 1.0), (3.0, 3.0), (3.0, 3.0), (1.0, 3.0), (3.0, 3.0), (3.0, 1.0)])
+    asked = []
+
+    def scripted(batch, wanted=None):
+        asked.append(wanted)
+        posterior, scores = real(batch, wanted)
+        rate, image = next(script)
+        return posterior, {"rate": torch.full_like(scores["rate"], rate * r_bar),
+                           "image_rate": torch.full_like(scores["rate"], image)}  # fmt: skip
+
+    policy.observation_scores = scripted
+    policy.reset()
+    obs = make_batch(policy.config, batch_size=1, with_action=False)
+    just_stopped, resumed, values = [], [], []
+    for step in range(6):
+        policy.select_action(obs)
+        values.append(float(policy.last_step.stop_value[0]))
+        if bool(policy.last_step.just_stopped[0]):
+            just_stopped.append(step)
+        if bool(policy.last_step.resumed[0]):
+            resumed.append(step)
+    assert just_stopped == [1, 4] and resumed == [3, 5]  # the rate fell at 3, the image rate at 5
+    assert values[0] == pytest.approx(1.0) and values[3] == pytest.approx(1.0)  # 2 * min(3/2, 1/2)
+    assert set(asked) == {None}  # every score is computed when an AND needs them

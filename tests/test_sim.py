@@ -240,7 +240,7 @@ def test_lerobot_vib_eval_reports_u_and_stops_per_episode(recorded, recorded_che
     assert {float(r["threshold"]) for r in trace} == {1e-6}  # the threshold in force at every step
     assert info["env"]["type"] == "aloha_fast" and info["env"]["perturbation"]["noise_std"] == [0.0]
     assert sorted(p.name for p in (out / "pictures").iterdir()) == [f"episode_{i}.png" for i in range(3)]
-    assert {"stop_value", "threshold"} <= set(trace[0])
+    assert {"stop_value", "threshold", "u_rate"} <= set(trace[0]) and info["score_means"]["rate"] > 0
     for e in episodes:
         u = [float(r["u"]) for r in trace if int(r["episode"]) == e["episode_ix"]]
         assert np.isclose(np.mean(u), e["u_mean"], rtol=1e-4)

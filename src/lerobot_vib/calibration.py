@@ -222,6 +222,9 @@ def describe_calibration(config, rate_mean: float, training_data: str | None = N
         n = len(c.rollout_seeds or c.conformal_episodes or [])
         how = _GAMMA_METHODS.get(c.gamma_method or "", c.gamma_method or "unknown").format(n=n, alpha=c.conformal_alpha)
         lines.append(f"- Stop threshold gamma = {c.gamma:.4g} on `{c.gamma_score or 'rate'}`, set by {how}.")
+        if c.and_gammas:
+            partners = ", ".join(f"`{k}` above {g:.4g}" for k, g in c.and_gammas.items())
+            lines.append(f"- The stop fires only when also {partners} (an AND of scores, each set as gamma was).")
         if c.window > 1:
             lines.append(
                 f"- The stop reads u's {c.window_aggregate} over each env's last {c.window} steps, as gamma was set."

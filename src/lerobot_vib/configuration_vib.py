@@ -179,6 +179,11 @@ class CalibrationConfig:
             frame's spike. 1: u itself. Set with gamma by `lerobot-vib-calibrate --rollouts=... --window=w`,
             since a threshold only means something on the quantity it was calibrated on; Eq. 6 reads u as it is.
         window_aggregate: "mean" or "sum" of the window's u (they differ only in the first `window` steps).
+        and_gammas: Other scores that must also be above their own threshold, each on its u over the same
+            window, for the stop to fire (an AND of scores, FIPER's combination): {score: threshold}. Empty: the
+            stop reads one score. The stop compares gamma_t * min(m_t / gamma_t, m_k / gamma_k, ...) with gamma_t,
+            which is above it exactly when every member is above its own threshold, and falls below the resume
+            threshold when any member falls. Set by `lerobot-vib-calibrate --rollouts=... --and_scores=[...]`.
     """
 
     dataset_repo_id: str | None = None
@@ -202,8 +207,15 @@ class CalibrationConfig:
     episodes_above_gamma: float | None = None
     window: int = 1
     window_aggregate: str = "mean"
+    and_gammas: dict[str, float] = field(default_factory=dict)
 
     def __post_init__(self):
+        for name, value in self.and_gammas.items():
+            if name not in SCORES or not (math.isfinite(value) and value > 0):
+                raise VIBConfigError(
+                    f"`calibration.and_gammas` must map scores {SCORES} to positive finite thresholds, got "
+                    f"{name}={value}."
+                )
         if not (isinstance(self.window, int) and self.window >= 1):
             raise VIBConfigError(f"`calibration.window` must be a whole number of steps >= 1, got {self.window}.")
         if self.window_aggregate not in ("mean", "sum"):

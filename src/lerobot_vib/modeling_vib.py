@@ -454,7 +454,7 @@ class VIBPolicy(PreTrainedPolicy):
         self._rate_map: Tensor | None = None
         self._halted_before: Tensor | None = None
         self._progress: Tensor | None = None  # (B,) steps each env ran, stopped ones not counted
-        self._recent_u: list[Tensor] = []  # the last `calibration.window` steps' u, for the stop
+        self._recent_u: dict[str, list[Tensor]] = {}  # per score the stop reads: its last `window` steps' u
         self.last_step = None
 
     # ------------------------------------------------------------------------------------------- uncertainty
@@ -592,9 +592,11 @@ class VIBPolicy(PreTrainedPolicy):
             posterior, rate, u, scores = None, self.last_step.rate, self.last_step.u, self.last_step.scores
             self._rate_map = self.last_step.rate_map
         else:
-            posterior, scores = self.observation_scores(batch, None if self.trace_all_scores else score)
+            partners = self.config.calibration.and_gammas
+            every = self.trace_all_scores or bool(partners)
+            posterior, scores = self.observation_scores(batch, None if every else score)
             rate = scores["rate"]
-            if score == "chunk_disagreement" or self.trace_all_scores:
+            if score == "chunk_disagreement" or self.trace_all_scores or "chunk_disagreement" in partners:
                 scores["chunk_disagreement"] = self._disagreement.update(decode())
             u = scores[score] / self.score_mean(score)
 
@@ -610,7 +612,7 @@ class VIBPolicy(PreTrainedPolicy):
                 self.runtime.monitor.set_threshold(thresholds, self.config.safety.resume_threshold)
             else:
                 self.runtime.monitor.set_threshold(gamma, self.config.safety.resume_threshold)
-        stop_u = self._windowed(u)
+        stop_u = self._stop_value(u, scores, gamma if thresholds is None else thresholds)
         action, decision = self.runtime.step(
             u, decode, lambda last: self._safety_action(batch, batch_size, last), unknown=~obs_finite, stop_u=stop_u
         )
@@ -636,15 +638,32 @@ class VIBPolicy(PreTrainedPolicy):
         )
         return action
 
-    def _windowed(self, u: Tensor) -> Tensor:
-        """m_t: u aggregated over each env's last `calibration.window` steps (failure.windowed), what the stop
-        compares with its threshold; u itself for a window of 1. A non-finite u in the window stays unknown."""
+    def _windowed(self, u: Tensor, score: str = "") -> Tensor:
+        """m_t: u aggregated over each env's last `calibration.window` steps (failure.windowed); u itself for a
+        window of 1. A non-finite u in the window stays unknown."""
         window = self.config.calibration.window
         if window == 1:
             return u
-        self._recent_u = [*self._recent_u[-(window - 1) :], u]
-        total = torch.stack(self._recent_u).sum(dim=0)
-        return total / len(self._recent_u) if self.config.calibration.window_aggregate == "mean" else total
+        recent = [*self._recent_u.get(score, [])[-(window - 1) :], u]
+        self._recent_u[score] = recent
+        total = torch.stack(recent).sum(dim=0)
+        return total / len(recent) if self.config.calibration.window_aggregate == "mean" else total
+
+    def _stop_value(self, u: Tensor, scores: dict[str, Tensor] | None, gamma: float | Tensor) -> Tensor:
+        """What the stop compares with gamma_t: the windowed u, or with `calibration.and_gammas` gamma_t times
+        the smallest ratio of each member's windowed u to its threshold (above gamma_t only when all are)."""
+        m = self._windowed(u)
+        partners = self.config.calibration.and_gammas
+        if not partners:
+            return m
+        threshold = torch.as_tensor(gamma, dtype=m.dtype, device=m.device).expand_as(m)
+        ratio = m / threshold
+        for name, g in partners.items():
+            if scores is None or name not in scores:
+                raise RuntimeError(f"The stop needs the {name!r} score at every step, and this step has none.")
+            partner = self._windowed(scores[name] / self.score_mean(name), name)
+            ratio = torch.minimum(ratio, partner / g)
+        return ratio * threshold
 
     def _log_stop_events(self, decision, u: Tensor, gamma: float | Tensor, obs_finite: Tensor) -> None:
         """One line per stop, resume and halt, when it happens, with u and the threshold in force: what
@@ -677,7 +696,10 @@ class VIBPolicy(PreTrainedPolicy):
 
     def _stop_quantity(self) -> str:
         c = self.config.calibration
-        return "u" if c.window == 1 else f"u's {c.window_aggregate} over {c.window} steps"
+        quantity = "u" if c.window == 1 else f"u's {c.window_aggregate} over {c.window} steps"
+        if c.and_gammas:
+            quantity += " (AND " + ", ".join(f"{k} above {g:.3g}" for k, g in c.and_gammas.items()) + ")"
+        return quantity
 
     def threshold_in_force(self, step: int | None = None) -> dict[str, Any]:
         """The stop threshold in force and where it comes from, in one place: {"enabled", "gamma" (at episode
@@ -704,6 +726,7 @@ class VIBPolicy(PreTrainedPolicy):
             not self.config.uncertainty_every_step
             and self.config.uncertainty_score != "chunk_disagreement"
             and not self.trace_all_scores
+            and not self.config.calibration.and_gammas
             and self.runtime.queued
             and self.last_step is not None
             and not self.runtime.any_stopped

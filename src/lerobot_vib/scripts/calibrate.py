@@ -31,7 +31,7 @@ import math
 import os
 import shutil
 import sys
-from dataclasses import asdict, dataclass, replace
+from dataclasses import asdict, dataclass, field, replace
 from pathlib import Path
 
 import huggingface_hub
@@ -57,7 +57,7 @@ from ..metrics import time_indexed_band
 from ..modeling_vib import EncoderParts, VIBPolicy
 from ..processor_vib import vib_dataset_stats
 from ..provenance import dataset_mismatches, rollout_env_problems, training_recording
-from ..scores import episode_disagreement, fit_embedding_rnd, score_statistics, token_scores
+from ..scores import SCORES, episode_disagreement, fit_embedding_rnd, score_statistics, token_scores
 
 logger = logging.getLogger(__name__)
 
@@ -94,6 +94,9 @@ class CalibrateConfig:
     window: With `rollouts`: the stop reads u aggregated over each env's last `window` steps, and the threshold
         is set on that (`calibration.window`; failure.py's windowed monitors). 1: u itself.
     window_aggregate: "mean" or "sum" over the window.
+    and_scores: With `rollouts`: other scores the stop also needs above their own threshold (an AND, FIPER's
+        combination), each set at `conformal_alpha` on the same rollouts' per-step u of that score over the same
+        window (the `u_<score>` columns lerobot-vib-eval writes); `calibration.and_gammas`.
     rnd_steps: Training steps of the "embedding_rnd" score's predictor (batch 256, on the recorded embeddings).
     num_workers: DataLoader workers.
     output_dir: Where to write the calibrated checkpoint (default: `<checkpoint>_calibrated` beside a local
@@ -118,6 +121,7 @@ class CalibrateConfig:
     threshold: str | None = None
     window: int = 1
     window_aggregate: str = "mean"
+    and_scores: list[str] = field(default_factory=list)
     output_dir: Path | None = None
     in_place: bool = False
     push_to_hub: bool = False
@@ -170,7 +174,9 @@ class CalibrateConfig:
                 f"`--window` must be >= 1 and `--window_aggregate` mean or sum, got {self.window} and "
                 f"{self.window_aggregate!r}."
             )
-        if self.window > 1 and self.rollouts is None:
+        if unknown := sorted(set(self.and_scores) - set(SCORES)):
+            raise VIBConfigError(f"`--and_scores` must name scores of {SCORES}; unknown: {unknown}.")
+        if (self.window > 1 or self.and_scores) and self.rollouts is None:
             raise VIBConfigError(
                 "`--window` sets the stop's window with its threshold from rollouts: give `--rollouts=`."
             )
@@ -444,6 +450,7 @@ def gamma_from_rollouts(
     recording: dict | None = None,
     window: int = 1,
     window_aggregate: str = "mean",
+    and_traces: dict[str, list[np.ndarray]] | None = None,
 ) -> CalibrationConfig:
     """`calibration` with gamma = the split-conformal threshold on clean rollouts' per-episode max u of the
     score the checkpoint reads u from (`expected_score`); with `threshold="time_band"`, the time-indexed band
@@ -453,7 +460,9 @@ def gamma_from_rollouts(
     Refused unless the rollouts are clean ones of this checkpoint: the stop off, no perturbation, the env's
     cameras and image size those of `policy_config`, its task and workspace those of the training `recording`
     (provenance.py), u normalized as this checkpoint normalizes it. With `window` > 1 both thresholds are set on
-    u aggregated over the last `window` steps (failure.windowed), from the per-step `traces`."""
+    u aggregated over the last `window` steps (failure.windowed), from the per-step `traces`. `and_traces`
+    ({score: per-step u of each rollout}) adds an AND: each score's threshold, conformal at `alpha` on its
+    windowed maxima, into `and_gammas`."""
     if calibration.rate_mean is None:
         raise VIBConfigError(
             "The checkpoint has no R_bar: calibrate it on its dataset first, evaluate that checkpoint, then use "
@@ -492,11 +501,14 @@ def gamma_from_rollouts(
             f"{source} has rollouts without a finite max u (seeds {unknown}): fix them, then calibrate."
         )
     scores = [ep["u_max"] for ep in info["per_episode"]]
-    if window > 1:
+    if window > 1 or and_traces:
         if traces is None or len(traces) != len(scores):
-            raise VIBConfigError(f"A window of {window} steps needs the per-step u of every rollout in {source}.")
+            what = f"A window of {window} steps" if window > 1 else "An AND of scores"
+            raise VIBConfigError(f"{what} needs the per-step u of every rollout in {source}.")
         traces = [windowed(t, window, window_aggregate) for t in traces]
         scores = [float(np.max(t)) for t in traces]
+    and_gammas = _and_gammas(calibration, info, and_traces or {}, score, len(scores), alpha, source, window,
+                             window_aggregate)  # fmt: skip
     needed = conformal_min_scores(alpha) * (2 if threshold == "time_band" else 1)
     if len(scores) < needed:
         raise VIBConfigError(
@@ -515,6 +527,13 @@ def gamma_from_rollouts(
     else:
         gamma = conformal_gamma(np.asarray(scores), alpha)
         above = [s > gamma for s in scores]
+    if and_gammas:  # an episode the AND stops: at some step every member is above its threshold
+        above = []
+        for i, t in enumerate(traces):
+            hit = t > (gamma if band is None else np.asarray(band)[: len(t)])
+            for name, g in and_gammas.items():
+                hit &= windowed(and_traces[name][i], window, window_aggregate)[: len(t)] > g
+            above.append(bool(hit.any()))
     return replace(
         calibration,
         gamma=gamma,
@@ -532,7 +551,39 @@ def gamma_from_rollouts(
         episodes_above_gamma=float(np.mean(above)),
         window=window,
         window_aggregate=window_aggregate,
+        and_gammas=and_gammas,
     )
+
+
+def _and_gammas(
+    calibration: CalibrationConfig,
+    info: dict,
+    and_traces: dict[str, list[np.ndarray]],
+    score: str,
+    n: int,
+    alpha: float,
+    source: str,
+    window: int,
+    window_aggregate: str,
+) -> dict[str, float]:
+    """Each AND member's threshold on the rollouts, refused unless its u was normalized as this checkpoint
+    normalizes it and every rollout has its trace."""
+    out = {}
+    for name, traces in and_traces.items():
+        if name == score:
+            raise VIBConfigError(f"`--and_scores` repeats the stop's own score {score!r}.")
+        expected = calibration.rate_mean if name == "rate" else calibration.score_means.get(name)
+        recorded = (info.get("score_means") or {}).get(name)
+        if expected is None or recorded is None or not math.isclose(recorded, expected, rel_tol=1e-4):
+            raise VIBConfigError(
+                f"{source} holds u of {name} normalized by {recorded}, this checkpoint's mean is {expected}: "
+                "evaluate this calibrated checkpoint with lerobot-vib-eval, which records every score's u."
+            )
+        if len(traces) != n:
+            raise VIBConfigError(f"{source} has {len(traces)} traces of {name} for {n} rollouts.")
+        maxima = [float(np.max(windowed(t, window, window_aggregate))) for t in traces]
+        out[name] = conformal_gamma(np.asarray(maxima), alpha)
+    return out
 
 
 @parser.wrap()
@@ -589,14 +640,21 @@ def calibrate_main(cfg: CalibrateConfig) -> CalibrationConfig:
     return calibration
 
 
-def read_traces(path: Path) -> list[np.ndarray]:
-    """Per-episode u, in step order, from `lerobot-vib-eval`'s uncertainty_trace.csv."""
+def read_traces(path: Path, column: str = "u") -> list[np.ndarray]:
+    """Per-episode values of `column` (u, or u_<score>), in step order, from `lerobot-vib-eval`'s
+    uncertainty_trace.csv."""
     if not path.is_file():
-        raise VIBConfigError(f"The time-indexed band needs the per-step u in {path} (lerobot-vib-eval writes it).")
+        raise VIBConfigError(f"The per-step u is needed from {path} (lerobot-vib-eval writes it).")
     rows: dict[int, list[tuple[int, float]]] = {}
     with path.open() as f:
-        for row in csv.DictReader(f):
-            rows.setdefault(int(row["episode"]), []).append((int(row["step"]), float(row["u"])))
+        reader = csv.DictReader(f)
+        if column not in (reader.fieldnames or []):
+            raise VIBConfigError(
+                f"{path} has no {column} column: evaluate the calibrated checkpoint with lerobot-vib-eval, which "
+                "writes every score's u."
+            )
+        for row in reader:
+            rows.setdefault(int(row["episode"]), []).append((int(row["step"]), float(row[column])))
     return [np.array([u for _, u in sorted(steps)]) for _, steps in sorted(rows.items())]
 
 
@@ -604,9 +662,12 @@ def _calibrate_on_rollouts(cfg: CalibrateConfig) -> CalibrationConfig:
     source = Path(cfg.policy.pretrained_path)
     output_dir = _output_dir(source, cfg.output_dir, cfg.in_place)
     info = json.loads(Path(cfg.rollouts).read_text())
-    traces = None
-    if cfg.threshold == "time_band" or cfg.window > 1:
-        traces = read_traces(Path(cfg.rollouts).with_name("uncertainty_trace.csv"))
+    traces, and_traces = None, None
+    trace_file = Path(cfg.rollouts).with_name("uncertainty_trace.csv")
+    if cfg.threshold == "time_band" or cfg.window > 1 or cfg.and_scores:
+        traces = read_traces(trace_file)
+    if cfg.and_scores:
+        and_traces = {name: read_traces(trace_file, f"u_{name}") for name in cfg.and_scores}
     calibration = gamma_from_rollouts(
         cfg.policy.calibration,
         info,
@@ -619,6 +680,7 @@ def _calibrate_on_rollouts(cfg: CalibrateConfig) -> CalibrationConfig:
         recording=recorded[1] if (recorded := training_recording(source)) else None,
         window=cfg.window,
         window_aggregate=cfg.window_aggregate,
+        and_traces=and_traces,
     )
     policy = VIBPolicy.from_pretrained(source, config=cfg.policy)
     preprocessor, _ = make_pre_post_processors(policy.config, pretrained_path=str(source))

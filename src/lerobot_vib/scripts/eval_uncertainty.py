@@ -19,7 +19,9 @@ and `eval_info.json`). Beside `eval_info.json` it writes
   uncertainty_trace.csv  one row per step of every episode: episode, seed, step, rate, u, stopped, just_stopped,
                          and threshold, the stop threshold gamma at that step (a time-indexed band moves it;
                          it stops the policy only with the stop on, `safety_enabled` in uncertainty_info.json),
-                         and stop_value, what the stop compared with it (u, or u over the calibrated window)
+                         and stop_value, what the stop compared with it (u, or u over the calibrated window),
+                         then u_<score> for every score whose training mean is known (an AND's thresholds
+                         are set on them: `lerobot-vib-calibrate --rollouts=... --and_scores=[...]`)
 
 Every `select_action` of a VIB policy leaves the step's rate, u and stop decision per env in
 `policy.last_step`; this command keeps them while LeRobot's `rollout` runs a batch of envs, then cuts each
@@ -53,6 +55,7 @@ from lerobot.utils.utils import init_logging
 from ..configuration_vib import VIBConfigError
 from ..provenance import env_record, input_mismatches, recording_mismatches, training_recording
 from ..safety import NothingSafeToHoldError
+from ..scores import SCORES
 from .episode_pictures import write_pictures
 
 logger = logging.getLogger(__name__)
@@ -65,6 +68,7 @@ class UncertaintyCapture:
 
     def __init__(self) -> None:
         self.episodes: list[dict[str, Any]] = []  # {"seed", "gamma", "safety", and per-step arrays}
+        self.score_means: dict[str, float] = {}  # each traced score's training mean, its u = s / mean
 
     @contextmanager
     def capture(self) -> Iterator["UncertaintyCapture"]:
@@ -90,6 +94,9 @@ class UncertaintyCapture:
                     )  # fmt: skip
                     return action
                 raw = (s.scores or {}).get(s.score, s.rate)
+                means = {k: policy.score_mean(k) for k in (s.scores or {})} if hasattr(policy, "score_mean") else {}
+                means = {k: m for k, m in means.items() if math.isfinite(m) and m > 0}
+                self.score_means.update(means)
                 steps.append(
                     {
                         "score": s.score,
@@ -105,6 +112,7 @@ class UncertaintyCapture:
                         "stop_value": (s.u if s.stop_value is None else s.stop_value).float().cpu().numpy(),
                         "rate_map": None if s.rate_map is None else s.rate_map.float().cpu().numpy(),
                         "all_scores": {k: v.float().cpu().numpy() for k, v in (s.scores or {}).items()},
+                        "all_u": {k: s.scores[k].float().cpu().numpy() / m for k, m in means.items()},
                     }
                 )
                 return action
@@ -120,6 +128,9 @@ class UncertaintyCapture:
 
             if kwargs.get("render_callback") is not None:  # LeRobot's video frames get u and the stop drawn on
                 kwargs["render_callback"] = _drawing_u(kwargs["render_callback"], steps)
+            traced = getattr(policy, "trace_all_scores", None)
+            if traced is not None:  # every score at every step: calibration can then set an AND's thresholds
+                policy.trace_all_scores = True
             policy.select_action = select_and_record  # instance attributes, removed below
             env.step = step_and_record
             try:
@@ -127,6 +138,8 @@ class UncertaintyCapture:
             finally:
                 del policy.select_action
                 del env.step
+                if traced is not None:
+                    policy.trace_all_scores = traced
             self._add_batch(steps, data["done"].cpu().numpy(), kwargs.get("seeds"), missed)
             return data
 
@@ -156,6 +169,12 @@ class UncertaintyCapture:
                         for key in ("rate", "u", "stopped", "just_stopped")
                     },
                     "halted": np.array([s.get("halted", np.zeros(done.shape[0], dtype=bool))[i] for s in steps[:n]]),
+                    # every score's u at every step (each over its training mean), where that mean is known
+                    "score_u": {
+                        name: np.array([s["all_u"][name][i] for s in steps[:n]])
+                        for name in (steps[0].get("all_u") or {} if steps else {})
+                        if all(name in s.get("all_u", {}) for s in steps[:n])
+                    },
                     # every score the policy computed at every step (VIBPolicy.trace_all_scores), raw values
                     "scores": {
                         name: np.array([s["all_scores"][name][i] for s in steps[:n]])
@@ -321,9 +340,10 @@ def _fmt(value: float | None) -> str:
 
 
 def write_trace(episodes: list[dict[str, Any]], path: Path) -> None:
+    traced = [n for n in SCORES if episodes and all(n in ep.get("score_u", {}) for ep in episodes)]
     with path.open("w", newline="") as f:
         writer = csv.writer(f)
-        writer.writerow(TRACE_FIELDS)
+        writer.writerow([*TRACE_FIELDS, *(f"u_{n}" for n in traced)])
         for i, ep in enumerate(episodes):
             for t in range(len(ep["u"])):
                 writer.writerow(
@@ -337,6 +357,7 @@ def write_trace(episodes: list[dict[str, Any]], path: Path) -> None:
                         int(ep["just_stopped"][t]),
                         f"{ep['threshold'][t]:.6g}" if "threshold" in ep else "",
                         f"{ep['stop_value'][t]:.6g}" if "stop_value" in ep else "",
+                        *(f"{ep['score_u'][n][t]:.6g}" for n in traced),
                     ]
                 )
 
@@ -392,6 +413,7 @@ def eval_with_uncertainty(cfg: EvalPipelineConfig) -> dict:
     # What the rollouts ran in: `lerobot-vib-calibrate --rollouts` sets a threshold on clean ones of this policy.
     info["env"] = env_record(cfg.env)
     info["policy_path"] = str(cfg.policy.pretrained_path) if cfg.policy.pretrained_path else None
+    info["score_means"] = record.score_means  # what each u_<score> column of the trace was normalized by
     (out / "uncertainty_info.json").write_text(json.dumps(info, indent=2))
     write_trace(episodes, out / "uncertainty_trace.csv")
     pictures = write_pictures(episodes, info, out / "pictures")

@@ -3,10 +3,10 @@
 Per scored VIB row whose cells hold every score (`--calibrate=true`):
 
 1. validation: each training seed's validation rollouts at the row's chosen run time, clean and (with
-   `--failure_validation`) under every perturbed condition. Every candidate monitor (failure.candidate_monitors
-   over the scores the cells hold) is calibrated on that seed's successful clean ones at `alpha` and judged on
-   all of them, ranked by balanced accuracy averaged over the seeds. The best single-score one ships (the
-   policy's stop reads one score); a better AND is reported beside it.
+   `--failure_validation`) under every perturbed condition. Every candidate monitor the policy's stop can run
+   (failure.candidate_monitors over the scores the cells hold; an AND with constant thresholds) is calibrated
+   on that seed's successful clean ones at `alpha` and judged on all of them, ranked by balanced accuracy
+   averaged over the seeds; the best ships.
 2. test: the shipped monitor, each seed calibrated on its own validation successes, judged on every test
    cell: per condition, pooled over conditions and seeds, and at every level of `failure_alphas` (the
    TPR-against-TNR curve). Beside it, for reference: each score alone at one step with a constant threshold
@@ -132,22 +132,19 @@ def failure_prediction(cfg, cells: dict, runtime_of) -> dict:
             continue
         names = sorted(set.intersection(*[set(e.scores) for eps in validation.values() for e in eps]))
         candidates = candidate_monitors(names)
-        best, ranking = choose_monitor(candidates, validation, cfg.alpha)
-        # The policy's stop reads one score (its window and threshold from `lerobot-vib-calibrate --rollouts`):
-        # the best candidate it can run ships; an AND that ranks above it is reported beside it.
-        runnable = [r["monitor"] for r in ranking if len(r["monitor"].scores) == 1]
-        if best is None or not runnable:
+        # The policy's stop runs any candidate with a constant threshold on its partners (an AND's first score
+        # may have a band): `lerobot-vib-calibrate --rollouts --window --and_scores` sets it.
+        runnable = [m for m in candidates if len(m.scores) == 1 or m.threshold == "constant"]
+        shipped, ranking = choose_monitor(runnable, validation, cfg.alpha)
+        if shipped is None:
             out[variant] = {"error": "no monitor could be calibrated on the validation rollouts' successes"}
             continue
-        shipped = runnable[0]
         references = {f"{n} alone": Monitor((n,)) for n in names if Monitor((n,)) != shipped}
         if "low_image_rate" in names:
             references["the stop as shipped today"] = Monitor(("low_image_rate",), threshold="band")
         fiper = [r["monitor"] for r in ranking if set(r["monitor"].scores) == set(FIPER_PAIR)]
         if fiper:
             references["FIPER-like: embedding RND AND chunk disagreement, best on validation"] = fiper[0]
-        if best != shipped:
-            references["the best candidate on validation, which the stop cannot run yet"] = best
         result = {
             "validation_seeds": {
                 str(s): [e.seed for e in eps][:1] + [e.seed for e in eps][-1:] for s, eps in validation.items()
@@ -177,6 +174,19 @@ def failure_prediction(cfg, cells: dict, runtime_of) -> dict:
     return out
 
 
+def ship_command(m: Monitor, alpha: float) -> str:
+    """The commands that put monitor `m` into a checkpoint's stop."""
+    partners = f" --and_scores='[{','.join(m.scores[1:])}]'" if len(m.scores) > 1 else ""
+    return (
+        f"To ship it on a checkpoint: evaluate clean rollouts of the calibrated checkpoint with `lerobot-vib-eval "
+        f"--policy.uncertainty_score={m.scores[0]}` (the stop off; it records every score's u), then "
+        "`lerobot-vib-calibrate --policy.path=<checkpoint> "
+        f"--policy.uncertainty_score={m.scores[0]} --rollouts=<their uncertainty_info.json> --conformal_alpha={alpha} "
+        f"--threshold={'max' if m.threshold == 'constant' else 'time_band'} --window={m.window} "
+        f"--window_aggregate={m.aggregate}{partners}`: the policy's stop then runs this monitor."
+    )
+
+
 def _f(x: float | None, fmt: str = ".2f") -> str:
     if x is None or (isinstance(x, float) and math.isnan(x)):
         return "-"
@@ -201,31 +211,14 @@ def markdown(cfg, failure: dict, labels: dict[str, str]) -> list[str]:
             lines += [result["error"] + "."]
             continue
         lines += [shipped_line(result), ""]
-        m = Monitor.from_dict(result["shipped"]["monitor"])
-        lines += [
-            "To ship it on a checkpoint: evaluate clean rollouts with `--policy.uncertainty_score="
-            f"{m.scores[0]}` and the stop off, then `lerobot-vib-calibrate --policy.path=<checkpoint> "
-            f"--policy.uncertainty_score={m.scores[0]} --rollouts=<their uncertainty_info.json> "
-            f"--conformal_alpha={cfg.alpha} --threshold={'max' if m.threshold == 'constant' else 'time_band'} "
-            f"--window={m.window} --window_aggregate={m.aggregate}`: the policy's stop then reads this monitor.",
-            "",
-        ]
-        best = result["references"].get("the best candidate on validation, which the stop cannot run yet")
-        if best is not None:
-            p = (best.get("test") or {}).get("pooled") or {}
-            lines += [
-                f"The best candidate on validation was **{best['name']}**, an AND of two scores, which the policy's "
-                f"stop cannot run yet (it reads one score); on the test seeds it measured TPR {_f(p.get('tpr'))}, "
-                f"TNR {_f(p.get('tnr'))}, detection time {_f(p.get('detection_time'))}, median lead time "
-                f"{_f(p.get('median_lead_time'), '.0f')} steps. The shipped monitor is the best single-score one.",
-                "",
-            ]
+        lines += [ship_command(Monitor.from_dict(result["shipped"]["monitor"]), cfg.alpha), ""]
         test = result["test"] or {}
         pooled = test.get("pooled") or {}
         lines += [
-            f"The shipped monitor is **{result['shipped']['name']}** at alpha = {cfg.alpha}, the best of the "
-            f"single-score ones among {result['candidates']} candidates (each score alone and every AND of two; "
-            "windows 1, 5, 10 steps; mean or sum; a constant threshold or a time-varying band) by its balanced "
+            f"The shipped monitor is **{result['shipped']['name']}** at alpha = {cfg.alpha}, the best among "
+            f"{result['candidates']} candidates (each score alone and every AND of two; "
+            "windows 1, 5, 10 steps; mean or sum; a constant threshold or a time-varying band, an AND's band on "
+            "its first score only, as the policy's stop runs them) by its balanced "
             "accuracy on the validation rollouts, clean and under every condition ("
             + ", ".join(
                 f"seed {s}: {result['validation_successes'][s]} successes of {n}, "
