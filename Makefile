@@ -4,7 +4,7 @@ VENV := .venv
 BIN := $(VENV)/bin
 export MUJOCO_GL ?= egl
 
-.PHONY: install demo test lint bench system-deps clean
+.PHONY: install demo test test-docs lint bench system-deps clean
 
 $(BIN)/.installed: pyproject.toml
 	@PY="$$(scripts/find_python.sh)" && echo "Creating $(VENV) with $$PY" && "$$PY" -m venv $(VENV)
@@ -27,6 +27,10 @@ demo: install
 
 test: install
 	$(BIN)/pytest
+
+# Every command block of docs/ as pasted, on tiny data (about 25 minutes on 2 cores; not part of `make test`).
+test-docs: install
+	LEROBOT_VIB_DOCS=1 $(BIN)/pytest tests/test_docs_commands.py
 
 lint: install
 	$(BIN)/ruff check src tests benchmarks examples scripts

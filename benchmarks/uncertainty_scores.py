@@ -51,7 +51,8 @@ from report import cpu_name
 from lerobot_vib.calibration import conformal_gamma, mean_plus_2std_gamma
 from lerobot_vib.metrics import auroc, first_crossing, stop_metrics, time_indexed_band
 from lerobot_vib.modeling_vib import VIBPolicy
-from lerobot_vib.scores import SCORES, rate_terms
+from lerobot_vib.scores import SCORES as POLICY_SCORES
+from lerobot_vib.scores import TOKEN_SCORES, rate_terms
 from lerobot_vib.scripts.calibrate import _write, calibrate, record_frames
 from lerobot_vib.sim.arm_env import EPISODE_LENGTH, ArmGraspEnv
 from lerobot_vib.sim.env_config import ArmGraspEnvConfig
@@ -72,14 +73,25 @@ CONDITIONS: dict[str, dict] = {
 }
 DIM_FACTOR, FROZEN_FROM = 0.45, 20
 SPLIT_SEEDS = {"calibration": 600000, "validation": 400000, "test": 500000}
-LENGTHS = "__lengths"  # beside a per-episode key in a cell file: each episode's number of values
+LENGTHS = "__lengths"  # beside a per-episode key in a cell file: each episode's number of steps
+WIDTH = "__width"  # and the shape of one step's value (empty for a number)
 ALPHA = 0.1
 CATCH_WITHIN = 5
+
+
+# The pooled network's scores: this script also takes that network's rate apart (its two input paths), which
+# the token network does not have (its scores come from lerobot-vib-benchmark).
+SCORES = tuple(s for s in POLICY_SCORES if s not in TOKEN_SCORES)
 
 
 def load_policy(path: Path, overrides: list[str] | None = None) -> tuple[VIBPolicy, object]:
     config = PreTrainedConfig.from_pretrained(path, cli_overrides=overrides or [])
     config.device = "cpu"
+    if getattr(config, "encoder", "pooled") != "pooled":
+        raise SystemExit(
+            f"{path} is a {config.encoder!r} network: this script reads the pooled network's two input paths; "
+            "run lerobot-vib-benchmark --vib_tokens_checkpoint=... for a token network's scores."
+        )
     policy = VIBPolicy.from_pretrained(path, config=config)
     preprocessor, _ = make_pre_post_processors(policy.config, pretrained_path=str(path))
     return policy.eval(), preprocessor
@@ -92,7 +104,9 @@ def calibrated(args) -> Path:
         return out
     policy, preprocessor = load_policy(args.policy, [f"--rnd_input={args.rnd_input}"])
     dataset = LeRobotDataset(args.repo_id, root=args.dataset_root)
-    calibration = calibrate(policy, preprocessor, args.repo_id, root=args.dataset_root, batch_size=64)
+    calibration = calibrate(
+        policy, preprocessor, args.repo_id, root=args.dataset_root, batch_size=64, rnd_steps=args.rnd_steps
+    )
     _write(policy, preprocessor, calibration, args.policy, out)
     # The same frames again for what the decomposition needs: the camera path's training mean, and the
     # training frames' rate terms.
@@ -217,10 +231,12 @@ def derived_dataset(dataset: dict) -> dict:
 def _ragged_to_arrays(key: str, per_episode: list) -> dict[str, np.ndarray]:
     """Episodes of different lengths as plain arrays (values end to end, and each episode's length), so that
     reading them back never needs pickle: a pickled array in a file can run code when it is loaded."""
-    values = [np.asarray(v, dtype=np.float64).reshape(-1) for v in per_episode]
+    values = [np.asarray(v, dtype=np.float64) for v in per_episode]
+    width = values[0].shape[1:] if values else ()  # a per-step vector (the rate's terms per token) keeps its size
     return {
-        key: np.concatenate(values) if values else np.zeros(0),
+        key: np.concatenate([v.reshape(-1) for v in values]) if values else np.zeros(0),
         f"{key}{LENGTHS}": np.asarray([len(v) for v in values], dtype=np.int64),
+        f"{key}{WIDTH}": np.asarray(width, dtype=np.int64),
     }
 
 
@@ -235,11 +251,15 @@ def _read_cell(path: Path) -> dict:
         ) from None
     cell = {}
     for key, value in raw.items():
-        if key.endswith(LENGTHS):
+        if key.endswith((LENGTHS, WIDTH)):
             continue
         if f"{key}{LENGTHS}" in raw:
             lengths = raw[f"{key}{LENGTHS}"]
-            cell[key] = np.split(value, np.cumsum(lengths)[:-1]) if len(lengths) else []
+            # files written without the width hold one number per step, or stored a vector's numbers flat
+            width = tuple(int(w) for w in raw.get(f"{key}{WIDTH}", np.zeros(0, dtype=np.int64)))
+            size = int(np.prod(width)) if width else 1
+            pieces = np.split(value, np.cumsum(lengths * size)[:-1]) if len(lengths) else []
+            cell[key] = [piece.reshape(-1, *width) for piece in pieces]
         else:
             cell[key] = value
     return cell
@@ -407,6 +427,7 @@ def main() -> None:
     parser.add_argument("--episodes_clean", type=int, default=50, help="clean episodes (test, calibration)")
     parser.add_argument("--episodes_validation", type=int, default=15)
     parser.add_argument("--rnd_input", default="fused", help="the embedding the RND score reads (VIBConfig)")
+    parser.add_argument("--rnd_steps", type=int, default=3000, help="training steps of the RND predictor")
     parser.add_argument("--results", type=Path, default=None, help="write results.json of every split here")
     args = parser.parse_args()
     torch.set_num_threads(1)

@@ -1,10 +1,14 @@
 """Shapes and the ACT-like inference behaviour of VIBPolicy."""
 
+import json
+from pathlib import Path
+
 import pytest
 import torch
 
 from helpers import make_batch, make_config, with_rate_statistics
 from lerobot_vib.modeling_vib import VIBPolicy
+from lerobot_vib.pooled_network import PooledNetwork
 
 LAYOUTS = {
     "one_camera": dict(cameras={"top": (3, 32, 32)}, state_dim=5),
@@ -110,3 +114,14 @@ def test_pooling_and_position_embedding_options(pooling, position_embedding):
     loss, _ = policy.forward(make_batch(config))
     loss.backward()
     assert torch.isfinite(loss)
+
+
+def test_a_pooled_checkpoint_keeps_every_tensor_name_and_shape_it_was_saved_with():
+    """The pooled network lives in its own module now; `fixtures/pooled_state_dict.json` lists the policy's
+    tensors as they were saved before the move, so an older checkpoint still loads strictly (and, with the
+    same tensors and the same code, acts as it did)."""
+    saved = json.loads((Path(__file__).parent / "fixtures" / "pooled_state_dict.json").read_text())
+    torch.manual_seed(0)
+    policy = VIBPolicy(make_config())
+    assert isinstance(policy.network, PooledNetwork)
+    assert {k: list(v.shape) for k, v in policy.state_dict().items()} == saved

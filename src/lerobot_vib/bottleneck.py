@@ -40,7 +40,7 @@ class Posterior:
 
 @dataclass
 class VIBOutput:
-    """What a VIB network's forward pass returns (either network: modeling_vib's pooled one, token_network's)."""
+    """What a VIB network's forward pass returns (either network: pooled_network's or token_network's)."""
 
     actions: Tensor  # (B, chunk_size, action_dim)
     posterior: Posterior  # (B, K, latent_dim) each

@@ -1,18 +1,17 @@
 """VIBPolicy: ACT-style action chunking through a Variational Information Bottleneck (paper Sec. III-D).
 
-    encoder p(z|s):  ResNet trunk per camera (shared) -> pooled -> MLP  ┐
-                     observation.state -> MLP                         ├─ sum -> split into K state tokens
-                     observation.environment_state -> MLP              ┘        -> Gaussian posterior per token
-    marginal m(z):   learnable N(mu_m, sigma_m^2), shared by the tokens
-    rate R(s):       mean_k sum_d KL(p(z_kd|s) || m(z_d))                       (bottleneck.py)
-    decoder q(a|z):  encoder-only transformer over [proj(z_1..z_K); chunk_size learnable action queries]
-                     -> the action-query outputs -> linear head -> (chunk_size, action_dim)
-    loss:            L1(actions, non-padded steps) + beta * mean(R)
+The policy plumbs; a network does the learning. Two networks, each in its own module, offer the same calls
+(`encode` -> posterior, `rate`, `decode` -> action chunk, `forward`):
 
-No CVAE, no cross-attention decoder, no autoregression. Transformer layers are LeRobot's ACT layers. That is the
-pooled network (the paper's Fig. 2 as drawn, the default). With `encoder=tokens` the policy runs the token
-network instead (token_network.py: a posterior per token of ACT's own memory); the policy's plumbing is the
-same for both: `network.encode`, `network.rate`, `network.decode`.
+    pooled (default)  pooled_network.py: the paper's Fig. 2, pooled camera features summed with the state
+                      and cut into K state tokens, one Gaussian posterior per token
+    tokens            token_network.py: ACT's own token memory, one posterior per image cell and state token
+
+    loss:             L1(actions, non-padded steps) + beta * mean(R),   R the mean of the tokens' rates
+
+Around the network the policy keeps what acting needs: the rate's running mean and the calibration (u = R /
+R_bar), the scores of scores.py, temporal ensembling (runtime.py, ensembling.py) and the safety stop
+(safety.py).
 """
 
 from __future__ import annotations
@@ -22,25 +21,23 @@ import math
 import re
 from dataclasses import dataclass
 from pathlib import Path
-from types import SimpleNamespace
 from typing import Any
 
 import torch
 import torch.nn.functional as F
 from huggingface_hub import EvalResult, ModelCard
-from lerobot.policies.act.modeling_act import ACTEncoder, create_sinusoidal_pos_embedding
-from lerobot.policies.diffusion.modeling_diffusion import SpatialSoftmax
 from lerobot.policies.pretrained import PreTrainedPolicy
 from lerobot.utils.constants import ACTION, OBS_ENV_STATE, OBS_STATE
 from safetensors import SafetensorError
-from torch import Tensor, nn
+from torch import Tensor
 
-from .backbone import build_encoder_trunk, skip_pretrained_backbone
-from .bottleneck import GaussianBottleneck, Posterior, VIBOutput
+from .backbone import skip_pretrained_backbone
+from .bottleneck import Posterior
 from .calibration import RateTracker, describe_calibration, measured_success, stop_threshold, threshold_source
 from .configuration_vib import VIBConfig, VIBConfigError
 from .ema import make_ema
 from .inputs import check_observation, check_training_batch
+from .pooled_network import EncoderParts, PooledNetwork
 from .processor_vib import vib_dataset_stats
 from .runtime import ChunkRuntime
 from .safety import PolicySafetyAction, RobotUnits, SafetyMonitor
@@ -61,137 +58,6 @@ PyPI: install it from its source next to LeRobot (`pip install -e .` in a checko
 
 # LeRobot's card template says this until someone fills its table in.
 NO_EVALUATION = "_No evaluation results have been provided for this policy yet._"
-
-
-def _mlp(in_dim: int, hidden_dim: int, out_dim: int) -> nn.Sequential:
-    return nn.Sequential(nn.Linear(in_dim, hidden_dim), nn.ReLU(), nn.Linear(hidden_dim, out_dim))
-
-
-@dataclass
-class EncoderParts:
-    """The fused feature's summands, (B, K * d_token) each, and the cameras' pooled features side by side."""
-
-    image: Tensor | None  # the camera path: the sum of the cameras' projections
-    state: Tensor | None  # the state path: robot state and environment state projections
-    pooled: Tensor | None  # (B, n_cameras * pooled_dim), before projection
-
-    @property
-    def fused(self) -> Tensor:
-        return torch.stack([p for p in (self.image, self.state) if p is not None]).sum(0)
-
-
-class KeypointsAndMean(nn.Module):
-    """Spatial-softmax keypoints (where features are) beside the feature map's channel means (how strongly
-    they are present). Keypoints alone are invariant to the map's overall level: a black or washed-out image
-    yields keypoints near the map's centre, which the rate cannot tell from an ordinary frame."""
-
-    def __init__(self, keypoints: nn.Module):
-        super().__init__()
-        self.keypoints = keypoints
-
-    def forward(self, feature_map: Tensor) -> Tensor:
-        return torch.cat([self.keypoints(feature_map).flatten(1), feature_map.mean(dim=(2, 3))], dim=1)
-
-
-class ObservationEncoder(nn.Module):
-    """s -> fused feature of size K * d_token: per-modality projections summed (paper Fig. 2)."""
-
-    def __init__(self, config: VIBConfig):
-        super().__init__()
-        self.config = config
-        self.camera_keys = list(config.image_features)
-        fused_dim = config.n_state_tokens * config.d_token
-        self.pooled_dim = 0
-        if self.camera_keys:
-            self.backbone, channels = build_encoder_trunk(config)
-            image_shape = tuple(config.image_features[self.camera_keys[0]].shape)
-            with torch.no_grad():  # in eval mode: a probe must not touch batch-norm statistics
-                feature_map_shape = tuple(self.backbone.eval()(torch.zeros(1, *image_shape))["feature_map"].shape[1:])
-            self.backbone.train()
-            n_kp = config.spatial_softmax_num_keypoints
-            if config.image_pooling == "spatial_softmax":
-                self.pool = SpatialSoftmax(feature_map_shape, num_kp=n_kp)
-                pooled_dim = 2 * n_kp
-            elif config.image_pooling == "spatial_softmax_avg":
-                self.pool = KeypointsAndMean(SpatialSoftmax(feature_map_shape, num_kp=n_kp))
-                pooled_dim = 2 * n_kp + channels
-            else:
-                self.pool = nn.AdaptiveAvgPool2d(1)
-                pooled_dim = channels
-            self.pooled_dim = pooled_dim * len(self.camera_keys)
-            # One projection per camera so that the sum still tells the cameras apart.
-            self.camera_proj = nn.ModuleList(
-                _mlp(pooled_dim, config.mlp_hidden_dim, fused_dim) for _ in self.camera_keys
-            )
-        if config.robot_state_feature:
-            self.state_proj = _mlp(config.robot_state_feature.shape[0], config.mlp_hidden_dim, fused_dim)
-        if config.env_state_feature:
-            self.env_state_proj = _mlp(config.env_state_feature.shape[0], config.mlp_hidden_dim, fused_dim)
-
-    def parts(self, batch: dict[str, Tensor]) -> EncoderParts:
-        """The two paths of the fused feature, before they are summed, and the cameras' pooled features."""
-        image = state = pooled_all = None
-        if self.camera_keys:
-            images = torch.cat([batch[key] for key in self.camera_keys])  # one trunk pass for all cameras
-            pooled = self.pool(self.backbone(images)["feature_map"]).flatten(1)
-            per_camera = pooled.chunk(len(self.camera_keys))
-            image = torch.stack([proj(p) for p, proj in zip(per_camera, self.camera_proj, strict=True)]).sum(0)
-            pooled_all = torch.cat(per_camera, dim=1)
-        states = []
-        if self.config.robot_state_feature:
-            states.append(self.state_proj(batch[OBS_STATE]))
-        if self.config.env_state_feature:
-            states.append(self.env_state_proj(batch[OBS_ENV_STATE]))
-        if states:
-            state = torch.stack(states).sum(0)
-        return EncoderParts(image=image, state=state, pooled=pooled_all)
-
-    def forward(self, batch: dict[str, Tensor]) -> Tensor:
-        return self.parts(batch).fused
-
-
-class ActionDecoder(nn.Module):
-    """q(a|z): encoder-only transformer over [proj(z); learnable action queries] -> action chunk."""
-
-    def __init__(self, config: VIBConfig):
-        super().__init__()
-        self.n_tokens = config.n_state_tokens
-        self.latent_proj = nn.Linear(config.latent_dim, config.dim_model)
-        self.action_queries = nn.Embedding(config.chunk_size, config.dim_model)
-        n_positions = config.n_state_tokens + config.chunk_size
-        if config.position_embedding == "learned":
-            self.pos_embed = nn.Embedding(n_positions, config.dim_model)
-        else:
-            self.register_buffer("sinusoidal_pos_embed", create_sinusoidal_pos_embedding(n_positions, config.dim_model))
-        # ACTEncoder reads its sizes off an ACTConfig-like object.
-        self.transformer = ACTEncoder(
-            SimpleNamespace(
-                n_encoder_layers=config.n_layers,
-                dim_model=config.dim_model,
-                n_heads=config.n_heads,
-                dim_feedforward=config.dim_feedforward,
-                dropout=config.dropout,
-                feedforward_activation=config.feedforward_activation,
-                pre_norm=config.pre_norm,
-            )
-        )
-        self.action_head = nn.Linear(config.dim_model, config.action_feature.shape[0])
-        for p in self.transformer.parameters():  # ACT's initialization
-            if p.dim() > 1:
-                nn.init.xavier_uniform_(p)
-
-    def position_embedding(self) -> Tensor:
-        return self.pos_embed.weight if hasattr(self, "pos_embed") else self.sinusoidal_pos_embed
-
-    def forward(self, z: Tensor) -> Tensor:
-        """z: (B, K, latent_dim) -> actions (B, chunk_size, action_dim)."""
-        batch_size = z.shape[0]
-        tokens = torch.cat(
-            [self.latent_proj(z), self.action_queries.weight.unsqueeze(0).expand(batch_size, -1, -1)], dim=1
-        )
-        # ACT's layers are sequence-first.
-        out = self.transformer(tokens.transpose(0, 1), pos_embed=self.position_embedding().unsqueeze(1))
-        return self.action_head(out[self.n_tokens :].transpose(0, 1))
 
 
 @dataclass
@@ -228,36 +94,6 @@ class UncertaintyStep:
         }
 
 
-class VIB(nn.Module):
-    """The network: encoder, bottleneck (posterior heads + marginal), decoder."""
-
-    def __init__(self, config: VIBConfig):
-        super().__init__()
-        self.config = config
-        self.encoder = ObservationEncoder(config)
-        self.bottleneck = GaussianBottleneck(config.d_token, config.latent_dim)
-        self.decoder = ActionDecoder(config)
-
-    def encode(self, batch: dict[str, Tensor]) -> Posterior:
-        return self.posterior_of(self.encoder(batch))
-
-    def posterior_of(self, fused: Tensor) -> Posterior:
-        """The state tokens' posterior for a fused feature (B, K * d_token)."""
-        tokens = fused.view(fused.shape[0], self.config.n_state_tokens, self.config.d_token)
-        return self.bottleneck.posterior(tokens)
-
-    def rate(self, posterior: Posterior) -> Tensor:
-        return self.bottleneck.rate(posterior)
-
-    def decode(self, z: Tensor) -> Tensor:
-        return self.decoder(z)
-
-    def forward(self, batch: dict[str, Tensor], sample: bool) -> VIBOutput:
-        posterior = self.encode(batch)
-        z = posterior.sample() if sample else posterior.mean
-        return VIBOutput(self.decoder(z), posterior, self.bottleneck.rate(posterior))
-
-
 # torch's report of a tensor whose shape differs between a file and the network it is loaded into.
 SIZE_MISMATCH = re.compile(
     r"size mismatch for ([\w.]+): copying a param with shape (torch.Size\(\[[^]]*\]\)) from checkpoint, "
@@ -285,7 +121,7 @@ class VIBPolicy(PreTrainedPolicy):
         }
         if ignored := sorted(set(config.input_features) - set(self._used_inputs)):
             logger.warning("VIB ignores these input features: %s", ignored)
-        self.model = TokenNetwork(config) if config.encoder == "tokens" else VIB(config)
+        self.model = TokenNetwork(config) if config.encoder == "tokens" else PooledNetwork(config)
         # The other scores' fitted parts (scores.py): the pooled network's state-path training mean for
         # "image_rate", the token network's per-cell rate statistics for "map_score", and the RND of
         # "embedding_rnd". NaN / unfitted until `lerobot-vib-calibrate`; outside `model`, so neither the
@@ -429,7 +265,7 @@ class VIBPolicy(PreTrainedPolicy):
         return [{"params": rest}, {"params": backbone, "lr": self.config.optimizer_lr_backbone}]
 
     @property
-    def network(self) -> VIB | TokenNetwork:
+    def network(self) -> PooledNetwork | TokenNetwork:
         """The weights the policy acts with: the moving average in eval mode when `ema_decay` is set."""
         if self.ema is not None and not self.training:
             return self.ema.module

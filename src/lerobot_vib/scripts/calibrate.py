@@ -54,7 +54,8 @@ from ..calibration import (
 from ..configuration_vib import CalibrationConfig, VIBConfigError
 from ..failure import windowed
 from ..metrics import time_indexed_band
-from ..modeling_vib import EncoderParts, VIBPolicy
+from ..modeling_vib import VIBPolicy
+from ..pooled_network import EncoderParts
 from ..processor_vib import vib_dataset_stats
 from ..provenance import dataset_mismatches, rollout_env_problems, training_recording
 from ..scores import SCORES, episode_disagreement, fit_embedding_rnd, score_statistics, token_scores
