@@ -28,7 +28,7 @@ demo: install
 test: install
 	$(BIN)/pytest
 
-# Every command block of docs/ as pasted, on tiny data (about 25 minutes on 2 cores; not part of `make test`).
+# Every command block of docs/ as pasted, on tiny data (18 minutes on 2 cores; not part of `make test`).
 test-docs: install
 	LEROBOT_VIB_DOCS=1 $(BIN)/pytest tests/test_docs_commands.py
 

@@ -8,7 +8,7 @@ two conditions of a benchmark or of the uncertainty scores) or that this machine
 weights offline). A block that needs hardware says so in an HTML comment on the line above it,
 `<!-- not run by tests/test_docs_commands.py: <why> -->`, and is the only kind left out.
 
-The whole run records 50 arm episodes and four ALOHA ones and starts about 35 commands: 24 minutes on the
+The whole run records 50 arm episodes and four ALOHA ones and starts about 35 commands: 17.5 minutes on the
 2-core CPU, too long for every `make test`, so it runs with `LEROBOT_VIB_DOCS=1` (`make test-docs`). The check
 that no block holds a placeholder runs always.
 """
@@ -98,7 +98,7 @@ def test_every_docs_block_is_runnable_text_or_says_what_hardware_it_needs():
 
 
 @pytest.mark.slow
-@pytest.mark.skipif(os.environ.get("LEROBOT_VIB_DOCS") != "1", reason="24 minutes: LEROBOT_VIB_DOCS=1 (make test-docs)")
+@pytest.mark.skipif(os.environ.get("LEROBOT_VIB_DOCS") != "1", reason="18 minutes: LEROBOT_VIB_DOCS=1 (make test-docs)")
 def test_every_docs_command_runs_as_pasted_on_tiny_data(tmp_path):
     work = tmp_path / "work"
     work.mkdir()
