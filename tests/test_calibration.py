@@ -492,3 +492,56 @@ def test_the_model_card_states_the_data_score_r_bar_gamma_its_method_and_the_mea
     assert (result.metric_type, result.metric_value, result.dataset_type) == ("success_rate", 0.7, "local/arm")
     bare = VIBPolicy(make_config(uncertainty_score="rate")).generate_model_card("local/arm", "vib", None, None).text
     assert "Not calibrated" in bare and "no evaluation is recorded" in bare
+
+
+def test_a_calibrated_checkpoint_reaches_the_hub_through_its_http_api(
+    tiny_checkpoint, tiny_dataset_root, tmp_path, monkeypatch
+):
+    """push_calibrated (`lerobot-vib-calibrate --push_to_hub=true`) through LeRobot's push and huggingface_hub's
+    HTTP client, against a Hub served on localhost (tests/local_hub.py): the calibrated weights, both configs,
+    the card and the processors arrive as they are on disk."""
+    import shutil
+
+    import huggingface_hub
+    from huggingface_hub import ModelCard
+
+    from lerobot_vib.scripts.calibrate import push_calibrated
+    from local_hub import LocalHub
+
+    ckpt = tmp_path / "pretrained_model"
+    shutil.copytree(tiny_checkpoint, ckpt)
+    _calibrate(ckpt, tiny_dataset_root, "--in_place=true", "--rnd_steps=20")
+    r_bar = json.loads((ckpt / "config.json").read_text())["calibration"]["rate_mean"]
+    info = tmp_path / "uncertainty_info.json"
+    info.write_text(json.dumps(_rollouts([float(i) for i in range(1, 11)], r_bar)))
+    run([str(BIN / "lerobot-vib-calibrate"), f"--policy.path={ckpt}", f"--rollouts={info}", "--conformal_alpha=0.1",
+         "--threshold=max", "--in_place=true"])  # fmt: skip
+
+    with LocalHub() as hub:
+        monkeypatch.setattr(huggingface_hub.constants, "ENDPOINT", hub.endpoint)
+        monkeypatch.setattr(huggingface_hub.constants, "HF_HUB_OFFLINE", False)
+        monkeypatch.setenv("HF_TOKEN", "hf_local_test")
+
+        def validate_here(card, repo_type=None):  # ModelCard.validate posts to huggingface.co whatever the endpoint
+            response = huggingface_hub.utils.get_session().post(
+                f"{hub.endpoint}/api/validate-yaml",
+                json={"repoType": repo_type or "model", "content": str(card)},
+                headers=huggingface_hub.utils.build_hf_headers(),
+            )
+            huggingface_hub.utils.hf_raise_for_status(response)
+
+        monkeypatch.setattr(ModelCard, "validate", validate_here)
+        push_calibrated(ckpt, "user/vib_local")
+    assert hub.unknown == [] and hub.tokens == {"Bearer hf_local_test"}
+    files = hub.repos["user/vib_local"]
+    assert {"model.safetensors", "config.json", "train_config.json", "README.md"} <= set(files)
+    assert {"policy_preprocessor.json", "policy_postprocessor.json"} <= set(files)
+    pushed = json.loads(files["config.json"])["calibration"]
+    assert (pushed["gamma"], pushed["gamma_method"], pushed["rate_mean"]) == (10.0, "conformal_rollouts", r_bar)
+    assert json.loads(files["train_config.json"])["policy"]["calibration"]["gamma"] == 10.0
+    from safetensors.torch import load
+
+    sent, kept = load(files["model.safetensors"]), load((ckpt / "model.safetensors").read_bytes())
+    assert sent.keys() == kept.keys() and all(torch.equal(sent[k], kept[k]) for k in kept)
+    card = files["README.md"].decode()
+    assert "gamma" in card and "not on PyPI" in card and "Measured: 6/10 clean rollouts" not in card

@@ -718,7 +718,7 @@ def push_calibrated(checkpoint: Path, repo_id: str) -> None:
     preprocessor, postprocessor = make_pre_post_processors(policy.config, pretrained_path=str(checkpoint))
     preprocessor.push_to_hub(repo_id)
     postprocessor.push_to_hub(repo_id)
-    print(f"Pushed {checkpoint} to https://huggingface.co/{repo_id}")
+    print(f"Pushed {checkpoint} to {huggingface_hub.constants.ENDPOINT}/{repo_id}")
 
 
 def _write(policy: VIBPolicy, preprocessor, calibration: CalibrationConfig, source: Path, output_dir: Path) -> None:
