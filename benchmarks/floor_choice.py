@@ -10,6 +10,8 @@ training each (same preset, budget and training seed):
     action   on the action only (`--policy.normalization_floor_features=action`)
     off      no floor (`--policy.normalization_floor=null`)
 
+`--encoder=tokens` trains the token network (`--policy.encoder=tokens`) instead of the pooled one.
+
 Each training runs `lerobot-train` (two side by side, one torch thread each); each checkpoint is rolled out by
 `lerobot-eval` with its own run time on the clean validation seeds, where the option with the most successes
 is chosen (a tie goes to the one listed first), then on the test seeds, which no choice saw. Every stage is
@@ -17,6 +19,9 @@ saved as it finishes; rerun the command to resume.
 
     python benchmarks/floor_choice.py --dataset_root data/arm_near --out outputs/floor_choice \
         --output benchmarks/results/floor_choice_demo_budget_cpu_2core/report.md
+    python benchmarks/floor_choice.py --dataset_root data/arm_near --encoder tokens --options all action off \
+        --parallel 3 --out outputs/floor_choice_tokens \
+        --output benchmarks/results/floor_choice_tokens_demo_budget_cpu_2core/report.md
 """
 
 from __future__ import annotations
@@ -45,6 +50,7 @@ OPTIONS = {
     "action": ["--policy.normalization_floor_features=action"],
     "off": ["--policy.normalization_floor=null"],
 }
+ENCODER = {"pooled": [], "tokens": ["--policy.encoder=tokens"]}
 MEANING = {
     "all": "every feature (the preset's default)",
     "state": "the state only",
@@ -68,8 +74,8 @@ def train(option: str, args) -> Path:
         cmd = [str(BIN / "lerobot-train"), f"--config_path={last / 'train_config.json'}", "--resume=true"]
     else:
         cmd = [str(BIN / "lerobot-train"), f"--config_path={args.preset}", f"--dataset.root={args.dataset_root}"]
-        cmd += [*OPTIONS[option], f"--steps={args.steps}", "--save_freq=1000", f"--seed={args.seed}"]
-        cmd += [f"--output_dir={train_dir}"]
+        cmd += [*ENCODER[args.encoder], *OPTIONS[option], f"--steps={args.steps}", "--save_freq=1000"]
+        cmd += [f"--seed={args.seed}", f"--output_dir={train_dir}"]
     run_dir.mkdir(parents=True, exist_ok=True)
     print(as_typed(cmd), flush=True)
     with (run_dir / "command.txt").open("a") as f:
@@ -109,6 +115,7 @@ def main() -> None:
     p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("--dataset_root", type=Path, required=True)
     p.add_argument("--preset", type=Path, default=ROOT / "configs/policy/vib_arm_sim.json")
+    p.add_argument("--encoder", default="pooled", choices=list(ENCODER), help="the network every option trains")
     p.add_argument("--options", nargs="+", default=list(OPTIONS), choices=list(OPTIONS))
     p.add_argument("--steps", type=int, default=2000)
     p.add_argument("--seed", type=int, default=1000)
@@ -156,9 +163,10 @@ def main() -> None:
             f"Trainings {args.parallel} side by side, {args.threads} torch thread each.",
             f"Command: `python benchmarks/floor_choice.py {' '.join(sys.argv[1:])}`",
             f"Preset `{args.preset.relative_to(ROOT) if args.preset.is_relative_to(ROOT) else args.preset}`, "
-            f"{args.steps} steps, training seed {args.seed} (one training per option). Each checkpoint acts with "
-            f"its own run time (the preset's). Validation: {args.val_episodes} clean episodes from seed "
-            f"{args.val_seed}, where the option was chosen (most successes; a tie goes to the one listed first). "
+            f"the {args.encoder} network, {args.steps} steps, training seed {args.seed} (one training per option). "
+            f"Each checkpoint acts with its own run time (the preset's). Validation: {args.val_episodes} clean "
+            f"episodes from seed {args.val_seed}, where the option was chosen (most successes; a tie goes to the "
+            "one listed first). "
             f"Test: {args.test_episodes} clean episodes from seed {args.test_seed}, which no choice saw.",
             "",
             "| floor | on | validation successes | test successes [95% Wilson] | training min | last logged loss |",
