@@ -163,6 +163,7 @@ class ArmGraspEnv(gym.Env):
         self._block_geom = m.geom("block").id
         self._finger_geoms = {m.body("finger_left").id, m.body("finger_right").id}
         self._occluder = m.body("occluder").mocapid[0]
+        self._occluder_geom = m.geom("occluder").id
 
     @property
     def task(self) -> str:
@@ -250,6 +251,19 @@ class ArmGraspEnv(gym.Env):
             else:
                 self.model.cam_pos[cam] = pos0
                 self.model.cam_quat[cam] = quat0
+
+    def occluder_mask(self) -> np.ndarray:
+        """(H, W) bool at the observation's size: the pixels of the occluded camera (the first fixed camera
+        observed) that show the occluder in the current frame; all False while the board is parked. MuJoCo's
+        segmentation rendering names the geom each pixel shows, so the mask follows a shaken camera too."""
+        renderer = self._renderer(self.height, self.width)
+        renderer.update_scene(self.data, camera=next(iter(self._shaken)))
+        renderer.enable_segmentation_rendering()
+        try:
+            ids = renderer.render()
+        finally:
+            renderer.disable_segmentation_rendering()
+        return (ids[..., 0] == self._occluder_geom) & (ids[..., 1] == int(mujoco.mjtObj.mjOBJ_GEOM))
 
     def _renderer(self, height: int, width: int) -> mujoco.Renderer:
         if (height, width) not in self._renderers:

@@ -1,0 +1,206 @@
+"""Where the token network's rate map points under the occluder, and what the map looks like.
+
+For a token-network checkpoint (`--policy.encoder=tokens`) on the simulated arm:
+
+1. **Pointing.** `--episodes` occlusion episodes (the benchmark's occluder: a board between the camera and the
+   workspace, drawn per episode), the stop off. At every step the board is in view, the simulator's
+   segmentation gives the board's pixels (`ArmGraspEnv.occluder_mask`) and `policy.last_step.rate_map` the
+   cells' rates; the share of those frames whose hottest cell lies under the board is set against the share a
+   random cell would reach (`lerobot_vib.rate_map`). Both for the raw rates and, where the checkpoint is
+   calibrated (`lerobot-vib-calibrate` stores every cell's training mean and std), for the cells' z-scores
+   that the map score reads.
+2. **Pictures.** One episode per condition (clean, the board in view, an unseen block, a black image) at the
+   same seed and step: the camera image with the map over it, on one colour scale, so the conditions compare.
+
+    python benchmarks/rate_map_pointing.py \
+        --policy_path=outputs/train/vib_tokens/checkpoints/last/pretrained_model --episodes 20 \
+        --out outputs/rate_map --output benchmarks/results/rate_map_tokens/report.md
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import platform
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+import torch
+
+os.environ.setdefault("MUJOCO_GL", "egl")
+
+from lerobot.configs.policies import PreTrainedConfig
+from lerobot.envs.utils import preprocess_observation
+from lerobot.policies.factory import make_pre_post_processors
+from report import cpu_name
+
+from lerobot_vib.modeling_vib import VIBPolicy
+from lerobot_vib.provenance import training_recording
+from lerobot_vib.rate_map import pointing
+from lerobot_vib.sim.arm_env import DEFAULT_WORKSPACE, EPISODE_LENGTH, ArmGraspEnv
+from lerobot_vib.sim.perturbations import CONDITIONS, PerturbationConfig
+
+PICTURE_STEP = 25
+PICTURES = {  # the board is in view over steps 10-39, so at PICTURE_STEP in its picture
+    "clean": CONDITIONS["normal"],
+    "board in view": PerturbationConfig(occlusion=True, occlusion_start=10, occlusion_duration=30),
+    "unseen block": CONDITIONS["unseen_block"],
+    "black image": CONDITIONS["black"],
+}
+
+
+def load(path: Path, device: str):
+    config = PreTrainedConfig.from_pretrained(path)
+    config.device = device
+    policy = VIBPolicy.from_pretrained(path, config=config)
+    if policy.config.encoder != "tokens":
+        raise SystemExit(f"{path} is a `{policy.config.encoder}` network; only the token network has a rate map.")
+    pre, post = make_pre_post_processors(policy.config, pretrained_path=str(path))
+    policy.eval()
+    return policy, pre, post
+
+
+def make_env(policy, perturbation: PerturbationConfig, recording: dict) -> ArmGraspEnv:
+    cameras = [key.removeprefix("observation.images.") for key in policy.config.image_features]
+    _, height, width = next(iter(policy.config.image_features.values())).shape
+    return ArmGraspEnv(
+        observation_height=height, observation_width=width, cameras=cameras, perturbation=perturbation,
+        shadows=recording.get("shadows", True), workspace=recording.get("workspace", DEFAULT_WORKSPACE),
+    )  # fmt: skip
+
+
+def z_map(policy, rate_map: np.ndarray) -> np.ndarray | None:
+    """Each cell's rate as a z-score against its training statistics; None on an uncalibrated checkpoint."""
+    mean, std = policy.map_cell_mean.cpu().numpy(), policy.map_cell_std.cpu().numpy()
+    if not (np.isfinite(mean).all() and np.isfinite(std).all()):
+        return None
+    return (rate_map - mean[: rate_map.size].reshape(rate_map.shape)) / np.maximum(
+        std[: rate_map.size].reshape(rate_map.shape), 1e-6
+    )
+
+
+def episode(policy, pre, post, env: ArmGraspEnv, seed: int, record_at=None):
+    """Roll one episode; returns the (rate map, mask) of every step the board is in view, the frame and map
+    at `record_at`, and whether it succeeded."""
+    obs, _ = env.reset(seed=seed)
+    policy.reset()
+    occluded, shown, success = [], None, False
+    for t in range(EPISODE_LENGTH):
+        in_view = env.scene.occluded(env.step_count)
+        mask = env.occluder_mask() if in_view else None
+        with torch.inference_mode():
+            action = post(policy.select_action(pre(preprocess_observation(obs))))
+        rate_map = policy.last_step.rate_map[0, 0].float().cpu().numpy()  # the first camera
+        if in_view:
+            occluded.append((rate_map, mask))
+        if t == record_at:
+            shown = (obs["pixels"][env.cameras[0]], rate_map)
+        obs, _, terminated, _, info = env.step(action[0].numpy())
+        success = success or bool(info.get("is_success"))
+        if terminated:
+            break
+    return occluded, shown, success
+
+
+def draw(shown: dict[str, tuple[np.ndarray, np.ndarray]], path: Path, label: str) -> None:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    low = min(float(m.min()) for _, m in shown.values())
+    high = max(float(m.max()) for _, m in shown.values())
+    fig, axes = plt.subplots(1, len(shown), figsize=(3.2 * len(shown), 2.9))
+    for ax, (name, (image, rate_map)) in zip(axes, shown.items(), strict=True):
+        h, w = image.shape[:2]
+        ax.imshow(image)
+        over = ax.imshow(rate_map, cmap="inferno", alpha=0.55, vmin=low, vmax=high, extent=(0, w, h, 0))
+        ax.set(title=f"{name} (step {PICTURE_STEP})", xticks=[], yticks=[])
+    fig.colorbar(over, ax=list(axes), fraction=0.02, label=label)
+    fig.savefig(path, dpi=110, bbox_inches="tight")
+    plt.close(fig)
+
+
+def main() -> None:
+    p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    p.add_argument("--policy_path", type=Path, required=True)
+    p.add_argument("--episodes", type=int, default=20)
+    p.add_argument("--seed", type=int, default=600000, help="first episode seed (the benchmark's test seeds)")
+    p.add_argument("--device", default="cpu")
+    p.add_argument("--out", type=Path, default=Path("outputs/rate_map"))
+    p.add_argument("--output", type=Path, default=None, help="write the Markdown report (and the picture) here")
+    args = p.parse_args()
+    start = time.time()
+    policy, pre, post = load(args.policy_path, args.device)
+    recording = (training_recording(args.policy_path) or (None, {}))[1]
+    args.out.mkdir(parents=True, exist_ok=True)
+
+    env = make_env(policy, CONDITIONS["occlusion"], recording)
+    maps, z_maps, masks, successes = [], [], [], 0
+    for i in range(args.episodes):
+        frames, _, success = episode(policy, pre, post, env, args.seed + i)
+        successes += success
+        for rate_map, mask in frames:
+            maps.append(rate_map)
+            masks.append(mask)
+            z = z_map(policy, rate_map)
+            if z is not None:
+                z_maps.append(z)
+    env.close()
+    raw = pointing(maps, masks)
+    z = pointing(z_maps, masks) if len(z_maps) == len(maps) and maps else None
+
+    shown = {}
+    for name, perturbation in PICTURES.items():
+        env = make_env(policy, perturbation, recording)
+        _, frame, _ = episode(policy, pre, post, env, args.seed, record_at=PICTURE_STEP)
+        env.close()
+        if frame is None:
+            raise SystemExit(f"The {name} episode of seed {args.seed} ended before step {PICTURE_STEP}.")
+        image, rate_map = frame
+        zm = z_map(policy, rate_map)
+        shown[name] = (image, rate_map if zm is None else zm)
+    picture_dir = args.output.parent if args.output else args.out
+    picture_dir.mkdir(parents=True, exist_ok=True)
+    picture = picture_dir / "rate_maps.png"
+    draw(shown, picture, "cell rate" if zm is None else "cell rate, z-score against training")
+
+    result = {"raw": raw, "z": z, "episodes": args.episodes, "successes": successes}
+    (args.out / "pointing.json").write_text(json.dumps(result, indent=2))
+    rows = [f"| raw cell rates | {raw['frames']} | {100 * raw['share']:.0f}% | {100 * raw['chance']:.0f}% |"]
+    if z is not None:
+        rows.append(f"| cell z-scores (the map score's) | {z['frames']} | {100 * z['share']:.0f}% | "
+                    f"{100 * z['chance']:.0f}% |")  # fmt: skip
+    report = "\n".join(
+        [
+            "# Where the token network's rate map points under the occluder",
+            "",
+            f"Machine: {cpu_name()}, {os.cpu_count()} CPUs, {platform.platform()}; torch {torch.__version__}.",
+            f"Command: `python benchmarks/rate_map_pointing.py {' '.join(sys.argv[1:])}`",
+            f"Checkpoint: `{args.policy_path}`. {args.episodes} occlusion episodes from seed {args.seed} (the "
+            f"benchmark's occluder, drawn per episode; the stop off): {successes} solved. A frame points at the "
+            "board when its hottest cell lies under it (the board covers at least half of the cell's image "
+            "block, from MuJoCo's segmentation); chance is the share of cells under the board, what a map of "
+            "random values would score.",
+            "",
+            "| map | occluded frames | hottest cell under the board | chance |",
+            "| --- | ---: | ---: | ---: |",
+            *rows,
+            "",
+            f"![the map over the camera image, four conditions]({picture.name}): seed {args.seed}, step "
+            f"{PICTURE_STEP}, one colour scale.",
+            "",
+            f"This run: {(time.time() - start) / 60:.1f} min.",
+            "",
+        ]
+    )
+    print(report)
+    if args.output:
+        args.output.write_text(report)
+
+
+if __name__ == "__main__":
+    main()
