@@ -11,10 +11,11 @@ Rows (runtime.py's modes; the stop is off, so only how the action is chosen diff
 for m in --coeffs. Conditions: clean and occlusion (a board in front of the camera from a step in [10, 40) for
 15-40 steps: the perturbation the shipped score sees, so where Eq. 6 has something to weigh).
 
-Seeds: validation 400000.. (the choice of m for each ensembler and of the preset's mode), test 500000.. (the
-reported numbers; nothing is chosen on them). The checkpoint is first calibrated with
-`lerobot-vib-calibrate`'s own computation (every score's mean), into <out>/calibrated. Every cell is one file
-(<out>/<split>/<condition>/<row>.json), skipped when present, so a stopped run resumes.
+Seeds: the project's plan (`lerobot_vib.seeds`): validation 400000.. (the choice of m for each ensembler and of
+the preset's mode), test 600000.. (the reported numbers; nothing is chosen on them). The committed report was
+made before the plan, with test 500000..; `--test_seed=500000` reruns it as it was. The checkpoint is first
+calibrated with `lerobot-vib-calibrate`'s own computation (every score's mean), into <out>/calibrated. Every
+cell is one file (<out>/<split>/<condition>/<row>.json), skipped when present, so a stopped run resumes.
 
 How far Eq. 6 moves the weights is measured too: at each step, the L1 distance between Eq. 6's weights over
 the candidates and ACT's at the same m (0 = identical, 2 = disjoint), from the u trace of the Eq. 6 rollout.
@@ -41,12 +42,13 @@ from lerobot.policies.factory import make_pre_post_processors
 from report import cpu_name, emit
 from uncertainty_scores import calibrated, load_policy
 
+from lerobot_vib import seeds
 from lerobot_vib.metrics import wilson_interval
 from lerobot_vib.sim.arm_env import EPISODE_LENGTH, ArmGraspEnv
 from lerobot_vib.sim.env_config import ArmGraspEnvConfig
 from lerobot_vib.sim.perturbations import PerturbationConfig
 
-SPLIT_SEEDS = {"validation": 400000, "test": 500000}
+DEFAULT_SPLIT_SEEDS = {"validation": seeds.VALIDATION, "test": seeds.TEST}
 CONDITIONS = {"clean": {}, "occlusion": {"occlusion": True}}
 SCORE = "low_image_rate"
 
@@ -104,9 +106,9 @@ def run(args, path: Path, split: str, n_episodes: dict[str, int]) -> None:
             env = env or ArmGraspEnv(**env_kwargs, perturbation=PerturbationConfig(**perturbation))
             policy, _ = load_policy(path, [f"--uncertainty_score={SCORE}", "--safety.enabled=false", *overrides])
             processors = make_pre_post_processors(policy.config, pretrained_path=str(path))
-            seeds = range(SPLIT_SEEDS[split], SPLIT_SEEDS[split] + n_episodes[condition])
+            episode_seeds = seeds.seed_range(split, n_episodes[condition], args.split_seeds[split])
             start = time.time()
-            episodes = [rollout(policy, processors, env, s) for s in seeds]
+            episodes = [rollout(policy, processors, env, s) for s in episode_seeds]
             cell = {"row": row, "overrides": overrides, "episodes": episodes, "wall_s": time.time() - start}
             target.parent.mkdir(parents=True, exist_ok=True)
             tmp = target.with_suffix(".tmp")
@@ -174,10 +176,10 @@ def report(args) -> str:
         "",
         "Command: `python " + shlex.join(args.argv) + "`",
         "",
-        f"Chosen on validation (seeds {SPLIT_SEEDS['validation']}..): "
+        f"Chosen on validation (seeds {args.split_seeds['validation']}..): "
         + ", ".join(f"{k}: **{v}**" for k, v in chosen.items())
         + ". Test seeds "
-        + f"{SPLIT_SEEDS['test']}.. were read only for this table.",
+        + f"{args.split_seeds['test']}.. were read only for this table.",
         "",
         "| row | clean (test) | occlusion (test) | pooled (test) | pooled (validation) | "
         "weight shift vs ACT, mean / p99 (test, occlusion) |",
@@ -212,13 +214,16 @@ def main() -> None:
     parser.add_argument("--repo_id", default="local/vib_arm_grasp_block_scripted")
     parser.add_argument("--out", type=Path, required=True)
     parser.add_argument("--coeffs", type=float, nargs="+", default=[0.01, 0.05, 0.1, 0.3])
-    parser.add_argument("--splits", nargs="*", default=["validation", "test"], choices=list(SPLIT_SEEDS))
+    parser.add_argument("--splits", nargs="*", default=["validation", "test"], choices=list(DEFAULT_SPLIT_SEEDS))
+    for split, first in DEFAULT_SPLIT_SEEDS.items():
+        parser.add_argument(f"--{split}_seed", type=int, default=first, help=f"first {split} episode seed")
     parser.add_argument("--episodes_clean", type=int, default=50, help="clean test episodes per row")
     parser.add_argument("--episodes_occlusion", type=int, default=25, help="occlusion test episodes per row")
     parser.add_argument("--episodes_validation", type=int, default=20, help="per condition and row")
     parser.add_argument("--rnd_input", default="fused")
     parser.add_argument("--report", type=Path, default=None)
     args = parser.parse_args()
+    args.split_seeds = {split: getattr(args, f"{split}_seed") for split in DEFAULT_SPLIT_SEEDS}
     args.argv = ["benchmarks/eq6_sweep.py", *sys.argv[1:]]
     if any(not (math.isfinite(m) and m >= 0) for m in args.coeffs):
         parser.error(f"--coeffs must be finite and >= 0, got {args.coeffs}")
@@ -234,7 +239,7 @@ def main() -> None:
         results = {
             split: {row: {c: [[e["seed"], e["success"]] for e in cell["episodes"]] for c, cell in cells.items()}
                     for row, cells in load(args.out, split, args.coeffs).items()}
-            for split in SPLIT_SEEDS
+            for split in DEFAULT_SPLIT_SEEDS
         }  # fmt: skip
         (args.report.parent / "results.json").write_text(json.dumps(results))
 
