@@ -5,12 +5,15 @@ For a token-network checkpoint (`--policy.encoder=tokens`) on the simulated arm:
 1. **Pointing.** `--episodes` occlusion episodes (the benchmark's occluder: a board between the camera and the
    workspace, drawn per episode), the stop off. At every step the board is in view, the simulator's
    segmentation gives the board's pixels (`ArmGraspEnv.occluder_mask`) and `policy.last_step.rate_map` the
-   cells' rates; the share of those frames whose hottest cell lies under the board is set against the share a
-   random cell would reach (`lerobot_vib.rate_map`). Both for the raw rates and, where the checkpoint is
+   cells' rates; the share of those frames whose hottest cell lies under the board, and the share whose
+   coldest cell does, are set against the share a random cell would reach, beside the mean gap between the
+   board's cells and the rest (`lerobot_vib.rate_map`). Both for the raw rates and, where the checkpoint is
    calibrated (`lerobot-vib-calibrate` stores every cell's training mean and std), for the cells' z-scores
    that the map score reads.
 2. **Pictures.** One episode per condition (clean, the board in view, an unseen block, a black image) at the
-   same seed and step: the camera image with the map over it, on one colour scale, so the conditions compare.
+   same seed and step: the camera image with the map over it, on one diverging colour scale (red above the
+   cell's training mean, blue below), so the conditions compare; the scale is set by the first three, and a
+   black image's cells beyond it are drawn at its ends.
 
     python benchmarks/rate_map_pointing.py \
         --policy_path=outputs/train/vib_tokens/checkpoints/last/pretrained_model --episodes 20 \
@@ -39,7 +42,7 @@ from report import cpu_name
 
 from lerobot_vib.modeling_vib import VIBPolicy
 from lerobot_vib.provenance import training_recording
-from lerobot_vib.rate_map import pointing
+from lerobot_vib.rate_map import ENDS, pointing
 from lerobot_vib.sim.arm_env import DEFAULT_WORKSPACE, EPISODE_LENGTH, ArmGraspEnv
 from lerobot_vib.sim.perturbations import CONDITIONS, PerturbationConfig
 
@@ -111,13 +114,16 @@ def draw(shown: dict[str, tuple[np.ndarray, np.ndarray]], path: Path, label: str
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    low = min(float(m.min()) for _, m in shown.values())
-    high = max(float(m.max()) for _, m in shown.values())
+    # A black image's cells sit hundreds of standard deviations out; scaled to them, the other maps vanish.
+    scaled = [m for name, (_, m) in shown.items() if name != "black image"] or [m for _, m in shown.values()]
+    centre = 0.0 if "z-score" in label else float(np.median(np.concatenate([m.ravel() for m in scaled])))
+    reach = max(float(np.abs(m - centre).max()) for m in scaled) or 1.0
+    low, high = centre - reach, centre + reach
     fig, axes = plt.subplots(1, len(shown), figsize=(3.2 * len(shown), 2.9))
     for ax, (name, (image, rate_map)) in zip(axes, shown.items(), strict=True):
         h, w = image.shape[:2]
         ax.imshow(image)
-        over = ax.imshow(rate_map, cmap="inferno", alpha=0.55, vmin=low, vmax=high, extent=(0, w, h, 0))
+        over = ax.imshow(rate_map, cmap="RdBu_r", alpha=0.6, vmin=low, vmax=high, extent=(0, w, h, 0))
         ax.set(title=f"{name} (step {PICTURE_STEP})", xticks=[], yticks=[])
     fig.colorbar(over, ax=list(axes), fraction=0.02, label=label)
     fig.savefig(path, dpi=110, bbox_inches="tight")
@@ -150,8 +156,10 @@ def main() -> None:
             if z is not None:
                 z_maps.append(z)
     env.close()
-    raw = pointing(maps, masks)
-    z = pointing(z_maps, masks) if len(z_maps) == len(maps) and maps else None
+    measured = {"raw cell rates": maps}
+    if len(z_maps) == len(maps) and maps:
+        measured["cell z-scores (the map score's)"] = z_maps
+    found = {name: {end: pointing(values, masks, end=end) for end in ENDS} for name, values in measured.items()}
 
     shown = {}
     for name, perturbation in PICTURES.items():
@@ -168,12 +176,14 @@ def main() -> None:
     picture = picture_dir / "rate_maps.png"
     draw(shown, picture, "cell rate" if zm is None else "cell rate, z-score against training")
 
-    result = {"raw": raw, "z": z, "episodes": args.episodes, "successes": successes}
+    result = {"pointing": found, "episodes": args.episodes, "successes": successes}
     (args.out / "pointing.json").write_text(json.dumps(result, indent=2))
-    rows = [f"| raw cell rates | {raw['frames']} | {100 * raw['share']:.0f}% | {100 * raw['chance']:.0f}% |"]
-    if z is not None:
-        rows.append(f"| cell z-scores (the map score's) | {z['frames']} | {100 * z['share']:.0f}% | "
-                    f"{100 * z['chance']:.0f}% |")  # fmt: skip
+    rows = [
+        f"| {name} | {r['hottest']['frames']} | {100 * r['hottest']['share']:.0f}% | "
+        f"{100 * r['coldest']['share']:.0f}% | {100 * r['hottest']['chance']:.0f}% | "
+        f"{r['hottest']['contrast']:+.3g} |"
+        for name, r in found.items()
+    ]
     report = "\n".join(
         [
             "# Where the token network's rate map points under the occluder",
@@ -186,12 +196,14 @@ def main() -> None:
             "block, from MuJoCo's segmentation); chance is the share of cells under the board, what a map of "
             "random values would score.",
             "",
-            "| map | occluded frames | hottest cell under the board | chance |",
-            "| --- | ---: | ---: | ---: |",
+            "| map | occluded frames | hottest cell under the board | coldest cell under the board | chance | "
+            "board's cells minus the rest |",
+            "| --- | ---: | ---: | ---: | ---: | ---: |",
             *rows,
             "",
             f"![the map over the camera image, four conditions]({picture.name}): seed {args.seed}, step "
-            f"{PICTURE_STEP}, one colour scale.",
+            f"{PICTURE_STEP}, one diverging colour scale set by the first three panels (red above the cell's "
+            "training mean, blue below; a black image's cells beyond it are drawn at its ends).",
             "",
             f"This run: {(time.time() - start) / 60:.1f} min.",
             "",

@@ -23,8 +23,19 @@ def test_a_map_hottest_under_the_board_points_at_it_and_one_hottest_elsewhere_do
     towards, away = np.zeros((12, 16)), np.zeros((12, 16))
     towards[9, 3], away[2, 12] = 5.0, 5.0
     result = pointing([towards, away], [mask, mask])
-    assert result == {"frames": 2, "share": 0.5, "chance": 0.25}
+    assert (result["frames"], result["share"], result["chance"]) == (2, 0.5, 0.25)
     assert hottest_cell(towards) == (9, 3)
+
+
+def test_a_board_that_lowers_its_cells_is_found_by_the_coldest_cell_and_a_negative_contrast():
+    mask = np.zeros((96, 128), dtype=bool)
+    mask[48:, :64] = True
+    darker = np.ones((12, 16))
+    darker[6:, :8] = -1.0  # every cell under the board 2 below the rest
+    darker[0, 15] = 3.0  # the hottest cell far from it
+    hot, cold = pointing([darker], [mask]), pointing([darker], [mask], end="coldest")
+    assert hot["share"] == 0.0 and cold["share"] == 1.0
+    assert cold["contrast"] == pytest.approx(-1.0 - (1.0 * 143 + 3.0) / 144)
 
 
 def test_frames_without_the_board_are_not_counted():
@@ -44,6 +55,8 @@ def test_frames_without_the_board_are_not_counted():
 def test_bad_maps_and_masks_are_refused_by_name(maps, masks, message):
     with pytest.raises(ValueError, match=message):
         pointing(maps, masks)
+    with pytest.raises(ValueError, match="end must be one of"):
+        pointing(maps, masks, end="warmest")
 
 
 def test_the_occluder_mask_covers_the_board_while_it_is_in_view_and_nothing_once_it_left():

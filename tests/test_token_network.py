@@ -96,6 +96,14 @@ def test_the_map_score_is_the_largest_cell_z_score():
     torch.testing.assert_close(map_score(rates, mean, std, top_k=2), torch.tensor([1.0, 0.125]))
 
 
+def test_a_cell_whose_rate_falls_raises_the_low_map_score_and_not_the_map_score():
+    mean, std = torch.ones(4), torch.full((4,), 0.5)
+    rates = torch.tensor([[1.0, 1.0, 1.0, -2.0]])  # one cell 6 std below what it showed in training
+    scores = token_scores(torch.cat([torch.ones(1, 1), rates], 1), 1, mean, std)
+    torch.testing.assert_close(scores["low_map_score"], torch.tensor([6.0]))
+    torch.testing.assert_close(scores["map_score"], torch.tensor([0.0]))
+
+
 def test_select_action_leaves_the_rate_map_and_every_token_score(policy):
     policy.reset()
     action = policy.select_action(make_batch(policy.config, with_action=False))
@@ -167,7 +175,7 @@ def test_lerobot_train_and_calibrate_give_the_token_network_its_map_statistics(t
     )
     calibrated = ckpt.with_name("pretrained_model_calibrated")
     means = json.loads((calibrated / "config.json").read_text())["calibration"]["score_means"]
-    assert {"image_rate", "state_rate", "map_score", "embedding_rnd"} <= set(means)
+    assert {"image_rate", "state_rate", "map_score", "low_map_score", "embedding_rnd"} <= set(means)
     from lerobot.configs.policies import PreTrainedConfig
 
     config = PreTrainedConfig.from_pretrained(calibrated)

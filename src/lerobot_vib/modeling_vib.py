@@ -41,7 +41,7 @@ from .pooled_network import EncoderParts, PooledNetwork
 from .processor_vib import vib_dataset_stats
 from .runtime import ChunkRuntime
 from .safety import PolicySafetyAction, RobotUnits, SafetyMonitor
-from .scores import ChunkDisagreement, EmbeddingRND, token_scores
+from .scores import MAP_SCORES, ChunkDisagreement, EmbeddingRND, token_scores
 from .token_network import TokenNetwork
 
 logger = logging.getLogger(__name__)
@@ -195,7 +195,7 @@ class VIBPolicy(PreTrainedPolicy):
         if score != "rate" and not math.isfinite(self.score_mean(score)):
             missing.append("its mean over the training frames")
         if self.config.encoder == "tokens":
-            if score == "map_score" and not torch.isfinite(self.map_cell_mean).all():
+            if score in MAP_SCORES and not torch.isfinite(self.map_cell_mean).all():
                 missing.append("each image cell's rate statistics")
         elif score in ("image_rate", "low_image_rate") and not torch.isfinite(self.state_embedding_mean).all():
             missing.append("the state path's training mean")

@@ -1,4 +1,4 @@
-"""Where the token network's rate map points: is the hottest image cell where the image changed?
+"""Where the token network's rate map points: is the hottest (or the coldest) image cell where the image changed?
 
 The token network gives one rate per cell of the trunk's feature map (`policy.last_step.rate_map`,
 (B, cameras, H', W')). Cell (i, j) is the trunk's output for the image block of rows
@@ -11,7 +11,13 @@ as pointing when its hottest cell lies under the mask:
     chance = mean over those frames of (cells under the mask / all cells)
 
 so that `share` can be read against what a map of random values would score (`chance`): a board that covers
-most of the image makes pointing at it easy.
+most of the image makes pointing at it easy. `end="coldest"` asks the same of the smallest cell: a board hides
+what was behind it, and a featureless view can *lower* a cell's rate (docs/uncertainty.md), so the map may
+point at the board by its coldest cell. Neither extreme says how far the board's cells stand apart, so
+
+    contrast = mean over those frames of (mean of the map under the mask - mean elsewhere)
+
+gives that in the map's own units (standard deviations, for a map of z-scores).
 """
 
 from __future__ import annotations
@@ -45,18 +51,29 @@ def hottest_cell(rate_map: np.ndarray) -> tuple[int, int]:
     return tuple(int(i) for i in np.unravel_index(np.argmax(rate_map), rate_map.shape))
 
 
-def pointing(rate_maps: Sequence[np.ndarray], masks: Sequence[np.ndarray]) -> dict[str, float | int]:
-    """`share` and `chance` (the module docstring) over the frames whose mask is not empty, and their count."""
+ENDS = ("hottest", "coldest")
+
+
+def pointing(
+    rate_maps: Sequence[np.ndarray], masks: Sequence[np.ndarray], end: str = "hottest"
+) -> dict[str, float | int]:
+    """`share`, `chance` and `contrast` (the module docstring) over the frames whose mask is not empty, and
+    their count; `end` names the cell that must lie under the mask."""
+    if end not in ENDS:
+        raise ValueError(f"end must be one of {ENDS}, got {end!r}.")
     if len(rate_maps) != len(masks):
         raise ValueError(f"{len(rate_maps)} rate maps against {len(masks)} masks.")
-    hits, chance, frames = 0, 0.0, 0
+    sign = 1.0 if end == "hottest" else -1.0
+    hits, chance, contrast, frames = 0, 0.0, 0.0, 0
     for rate_map, mask in zip(rate_maps, masks, strict=True):
+        rate_map = np.asarray(rate_map, dtype=float)
         under = cells_under(mask, np.shape(rate_map))
         if not under.any():
             continue
         frames += 1
-        hits += bool(under[hottest_cell(rate_map)])
+        hits += bool(under[hottest_cell(sign * rate_map)])
         chance += float(under.mean())
+        contrast += float(rate_map[under].mean() - rate_map[~under].mean()) if (~under).any() else 0.0
     if not frames:
-        return {"frames": 0, "share": float("nan"), "chance": float("nan")}
-    return {"frames": frames, "share": hits / frames, "chance": chance / frames}
+        return {"frames": 0, "share": float("nan"), "chance": float("nan"), "contrast": float("nan")}
+    return {"frames": frames, "share": hits / frames, "chance": chance / frames, "contrast": contrast / frames}

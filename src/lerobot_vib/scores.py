@@ -37,9 +37,14 @@ from tqdm import tqdm
 
 from .bottleneck import Posterior
 
-SCORES = ("rate", "image_rate", "low_image_rate", "embedding_rnd", "chunk_disagreement", "state_rate", "map_score")
+SCORES = (
+    "rate", "image_rate", "low_image_rate", "embedding_rnd", "chunk_disagreement", "state_rate", "map_score",
+    "low_map_score",
+)  # fmt: skip
 # Scores only the token network (`--policy.encoder=tokens`) has: its rates are per token.
-TOKEN_SCORES = ("state_rate", "map_score")
+TOKEN_SCORES = ("state_rate", "map_score", "low_map_score")
+# Scores that read the rate map's per-cell training statistics (calibration).
+MAP_SCORES = ("map_score", "low_map_score")
 RND_INPUTS = ("fused", "pooled")
 
 
@@ -61,6 +66,9 @@ def token_scores(
     low_image_rate  1 / image_rate
     state_rate      mean over the state tokens
     map_score       `map_score` over the cells, once their training statistics are known (calibration)
+    low_map_score   `map_score` of the cells' negated z-scores: the cell whose rate fell furthest below
+                    what it showed in training. A board in front of the camera hides what its cells
+                    usually carry and lowers their rates (benchmarks/rate_map_pointing.py)
     """
     scores = {"rate": token_rates.mean(dim=1)}
     cells = token_rates[:, n_1d_tokens:]
@@ -69,6 +77,7 @@ def token_scores(
         scores["low_image_rate"] = 1.0 / scores["image_rate"]
         if cell_mean is not None and torch.isfinite(cell_mean).all() and torch.isfinite(cell_std).all():
             scores["map_score"] = map_score(cells, cell_mean, cell_std, top_k)
+            scores["low_map_score"] = map_score(-cells, -cell_mean, cell_std, top_k)
     if n_1d_tokens:
         scores["state_rate"] = token_rates[:, :n_1d_tokens].mean(dim=1)
     return scores
