@@ -533,3 +533,21 @@ def test_an_invocation_on_act_rows_alone_keeps_the_score_statistics_vib_rows_wro
     benchmark._merge_json(path, {}, tmp_path)  # ACT's rows: no score
     benchmark._merge_json(path, {"vib_beta0": {"mean": 2.0}}, tmp_path)
     assert json.loads(path.read_text()) == {"vib": {"mean": 1.0}, "vib_beta0": {"mean": 2.0}}
+
+
+def test_every_scores_auroc_reads_the_occluders_own_steps_and_counts_an_unknown_u_as_highest():
+    from lerobot_vib.sim.perturbations import CONDITIONS, draw_scene_episode
+
+    seeds = [600000, 600001, 600002]
+    windows = [draw_scene_episode(CONDITIONS["occlusion"], s).occluded_steps for s in seeds]
+    clean = [[1.0] * 100 for _ in seeds]
+    # u rises only while the board is in view: over the whole episode it would be diluted by clean frames
+    occluded = [[2.0 if t in w else 1.0 for t in range(100)] for w in windows]
+    black = [[float("nan")] * 100 for _ in seeds]
+    cells = {
+        "normal": {"seeds": seeds, "scores": {"low_map_score": clean}},
+        "occlusion": {"seeds": seeds, "scores": {"low_map_score": occluded}},
+        "black": {"seeds": seeds, "scores": {"low_map_score": black}},
+    }
+    every = benchmark_report.score_aurocs(cells)["low_map_score"]
+    assert every == {"occlusion": 1.0, "black": 1.0}

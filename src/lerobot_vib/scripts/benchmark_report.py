@@ -79,6 +79,41 @@ def occlusion_onsets(cell: dict) -> list[int | None]:
     return [draw_scene_episode(CONDITIONS["occlusion"], seed).occluded_steps.start for seed in cell["seeds"]]
 
 
+def score_aurocs(cells: dict[str, dict]) -> dict[str, dict[str, float]]:
+    """Every traced score's frame AUROC, clean against each perturbation, on paired frames: the clean and the
+    perturbed episode of one seed, at the same steps (both still running; under the occluder only the steps
+    it is in view, so that an occluder's frames are not diluted by the clean frames around it). A non-finite
+    u counts as higher than every finite one: unknown means stop."""
+    clean = cells.get("normal")
+    if clean is None or not clean.get("scores"):
+        return {}
+    by_seed = {seed: i for i, seed in enumerate(clean["seeds"])}
+    out: dict[str, dict[str, float]] = {}
+    for condition, cell in cells.items():
+        if condition == "normal" or not cell.get("scores"):
+            continue
+        for name, traces in cell["scores"].items():
+            if name not in clean["scores"]:
+                continue
+            neg, pos = [], []
+            for j, seed in enumerate(cell["seeds"]):
+                if seed not in by_seed:
+                    continue
+                a, b = clean["scores"][name][by_seed[seed]], traces[j]
+                steps = range(min(len(a), len(b)))
+                if condition == "occlusion":
+                    window = draw_scene_episode(CONDITIONS["occlusion"], seed).occluded_steps
+                    steps = [t for t in steps if t in window]
+                neg += [a[t] for t in steps]
+                pos += [b[t] for t in steps]
+            if neg and pos:
+                values = np.asarray(neg + pos, dtype=float)
+                finite = values[np.isfinite(values)]
+                values[~np.isfinite(values)] = (finite.max() + 1.0) if finite.size else 0.0
+                out.setdefault(name, {})[condition] = auroc(values[: len(neg)], values[len(neg) :])
+    return out
+
+
 def uncertainty(
     cells: dict[str, dict],
     calibration: dict,
@@ -260,6 +295,8 @@ def write_report(cfg, cells: dict, wall_s: float, planned: int) -> dict:
             results["uncertainty"].setdefault(v, {})[str(seed)] = uncertainty(
                 by_condition, calibration, v, cfg.conditions, gamma, cfg.alpha
             )
+            if every := score_aurocs(by_condition):
+                results.setdefault("score_aurocs", {}).setdefault(v, {})[str(seed)] = every
     results["failure_prediction"] = failure_report.failure_prediction(
         cfg, cells, lambda v, seed: runtime_of(choices, v, seed)
     )
@@ -298,6 +335,38 @@ def _wall_time_line(results: dict) -> str:
             "last end"
         )
     return line
+
+
+def score_auroc_table(every: dict, perturbed: list[str]) -> list[str]:
+    """The table of every score's paired frame AUROC: the mean over training seeds, (lowest-highest) with more."""
+    if not every:
+        return []
+    lines = [
+        "",
+        "## Every score: frame AUROC, clean against perturbed",
+        "",
+        "Each score the policy traces, on paired frames (the clean and the perturbed episode of one seed at the "
+        "same steps; under the occluder only the steps it is in view). Mean over training seeds, "
+        "(lowest-highest) with more than one; 0.5 is chance, below 0.5 the score falls.",
+        "",
+        "| variant, score | " + " | ".join(perturbed) + " |",
+        "| --- |" + " --- |" * len(perturbed),
+    ]
+    for v, by_seed in every.items():
+        names = sorted({name for per_score in by_seed.values() for name in per_score})
+        for name in names:
+            row = []
+            for p in perturbed:
+                values = [per_score[name][p] for per_score in by_seed.values() if p in per_score.get(name, {})]
+                values = [x for x in values if x is not None and np.isfinite(x)]
+                if not values:
+                    row.append("-")
+                elif len(values) == 1:
+                    row.append(f"{values[0]:.2f}")
+                else:
+                    row.append(f"{np.mean(values):.2f} ({min(values):.2f}-{max(values):.2f})")
+            lines.append(f"| {VARIANTS[v].label}, `{name}` | " + " | ".join(row) + " |")
+    return lines
 
 
 def _markdown(cfg, results: dict, plots: list[str]) -> str:
@@ -404,6 +473,7 @@ def _markdown(cfg, results: dict, plots: list[str]) -> str:
                     + " | ".join(row)
                     + f" | {_num(u['failure_auroc_clean'])} |"
                 )
+        lines += score_auroc_table(results.get("score_aurocs", {}), perturbed)
         lines += [
             "",
             f"## The safety stop, judged offline on the recorded u (alpha = {cfg.alpha})",
