@@ -7,7 +7,8 @@ For a token-network checkpoint (`--policy.encoder=tokens`) on the simulated arm:
    segmentation gives the board's pixels (`ArmGraspEnv.occluder_mask`) and `policy.last_step.rate_map` the
    cells' rates; the share of those frames whose hottest cell lies under the board, and the share whose
    coldest cell does, are set against the share a random cell would reach, beside the mean gap between the
-   board's cells and the rest (`lerobot_vib.rate_map`). Both for the raw rates and, where the checkpoint is
+   board's cells and the rest (`lerobot_vib.rate_map`), and the frame AUROC of the map's two scores against
+   the clean episode of the same seed at the same step. Both for the raw rates and, where the checkpoint is
    calibrated (`lerobot-vib-calibrate` stores every cell's training mean and std), for the cells' z-scores
    that the map score reads.
 2. **Pictures.** One episode per condition (clean, the board in view, an unseen block, a black image) at the
@@ -40,6 +41,7 @@ from lerobot.envs.utils import preprocess_observation
 from lerobot.policies.factory import make_pre_post_processors
 from report import cpu_name
 
+from lerobot_vib.metrics import auroc
 from lerobot_vib.modeling_vib import VIBPolicy
 from lerobot_vib.provenance import training_recording
 from lerobot_vib.rate_map import ENDS, pointing
@@ -86,26 +88,27 @@ def z_map(policy, rate_map: np.ndarray) -> np.ndarray | None:
 
 
 def episode(policy, pre, post, env: ArmGraspEnv, seed: int, record_at=None):
-    """Roll one episode; returns the (rate map, mask) of every step the board is in view, the frame and map
-    at `record_at`, and whether it succeeded."""
+    """Roll one episode; returns the (step, rate map, mask) of every step the board is in view, the rate map
+    of every step, the frame and map at `record_at`, and whether it succeeded."""
     obs, _ = env.reset(seed=seed)
     policy.reset()
-    occluded, shown, success = [], None, False
+    occluded, every, shown, success = [], [], None, False
     for t in range(EPISODE_LENGTH):
         in_view = env.scene.occluded(env.step_count)
         mask = env.occluder_mask() if in_view else None
         with torch.inference_mode():
             action = post(policy.select_action(pre(preprocess_observation(obs))))
         rate_map = policy.last_step.rate_map[0, 0].float().cpu().numpy()  # the first camera
+        every.append(rate_map)
         if in_view:
-            occluded.append((rate_map, mask))
+            occluded.append((t, rate_map, mask))
         if t == record_at:
             shown = (obs["pixels"][env.cameras[0]], rate_map)
         obs, _, terminated, _, info = env.step(action[0].numpy())
         success = success or bool(info.get("is_success"))
         if terminated:
             break
-    return occluded, shown, success
+    return occluded, every, shown, success
 
 
 def draw(shown: dict[str, tuple[np.ndarray, np.ndarray]], path: Path, label: str) -> None:
@@ -145,17 +148,28 @@ def main() -> None:
     args.out.mkdir(parents=True, exist_ok=True)
 
     env = make_env(policy, CONDITIONS["occlusion"], recording)
+    clean_env = make_env(policy, CONDITIONS["normal"], recording)
     maps, z_maps, masks, successes = [], [], [], 0
+    paired: dict[str, tuple[list[float], list[float]]] = {"map_score": ([], []), "low_map_score": ([], [])}
     for i in range(args.episodes):
-        frames, _, success = episode(policy, pre, post, env, args.seed + i)
+        frames, _, _, success = episode(policy, pre, post, env, args.seed + i)
+        _, clean_maps, _, _ = episode(policy, pre, post, clean_env, args.seed + i)
         successes += success
-        for rate_map, mask in frames:
+        for t, rate_map, mask in frames:
             maps.append(rate_map)
             masks.append(mask)
             z = z_map(policy, rate_map)
-            if z is not None:
-                z_maps.append(z)
+            if z is None:
+                continue
+            z_maps.append(z)
+            if t < len(clean_maps):  # the clean episode of the same seed at the same step
+                z_clean = z_map(policy, clean_maps[t])
+                for name, sign in (("map_score", 1.0), ("low_map_score", -1.0)):
+                    paired[name][0].append(float((sign * z_clean).max()))
+                    paired[name][1].append(float((sign * z).max()))
     env.close()
+    clean_env.close()
+    separation = {name: auroc(neg, pos) for name, (neg, pos) in paired.items() if neg and pos}
     measured = {"raw cell rates": maps}
     if len(z_maps) == len(maps) and maps:
         measured["cell z-scores (the map score's)"] = z_maps
@@ -164,7 +178,7 @@ def main() -> None:
     shown = {}
     for name, perturbation in PICTURES.items():
         env = make_env(policy, perturbation, recording)
-        _, frame, _ = episode(policy, pre, post, env, args.seed, record_at=PICTURE_STEP)
+        _, _, frame, _ = episode(policy, pre, post, env, args.seed, record_at=PICTURE_STEP)
         env.close()
         if frame is None:
             raise SystemExit(f"The {name} episode of seed {args.seed} ended before step {PICTURE_STEP}.")
@@ -176,7 +190,7 @@ def main() -> None:
     picture = picture_dir / "rate_maps.png"
     draw(shown, picture, "cell rate" if zm is None else "cell rate, z-score against training")
 
-    result = {"pointing": found, "episodes": args.episodes, "successes": successes}
+    result = {"pointing": found, "frame_auroc": separation, "episodes": args.episodes, "successes": successes}
     (args.out / "pointing.json").write_text(json.dumps(result, indent=2))
     rows = [
         f"| {name} | {r['hottest']['frames']} | {100 * r['hottest']['share']:.0f}% | "
@@ -201,6 +215,17 @@ def main() -> None:
             "| --- | ---: | ---: | ---: | ---: | ---: |",
             *rows,
             "",
+            *(
+                [
+                    "The map's two scores (top-1) on the occluded frames against the clean episode of the same "
+                    "seed at the same step, frame AUROC (0.5 is chance): "
+                    + ", ".join(f"`{name}` {value:.2f}" for name, value in separation.items())
+                    + ".",
+                    "",
+                ]
+                if separation
+                else []
+            ),
             f"![the map over the camera image, four conditions]({picture.name}): seed {args.seed}, step "
             f"{PICTURE_STEP}, one diverging colour scale set by the first three panels (red above the cell's "
             "training mean, blue below; a black image's cells beyond it are drawn at its ends).",
