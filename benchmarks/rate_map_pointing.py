@@ -45,6 +45,7 @@ from lerobot_vib.metrics import auroc
 from lerobot_vib.modeling_vib import VIBPolicy
 from lerobot_vib.provenance import training_recording
 from lerobot_vib.rate_map import ENDS, pointing
+from lerobot_vib.scores import token_scores
 from lerobot_vib.sim.arm_env import DEFAULT_WORKSPACE, EPISODE_LENGTH, ArmGraspEnv
 from lerobot_vib.sim.perturbations import CONDITIONS, PerturbationConfig
 
@@ -85,6 +86,16 @@ def z_map(policy, rate_map: np.ndarray) -> np.ndarray | None:
     return (rate_map - mean[: rate_map.size].reshape(rate_map.shape)) / np.maximum(
         std[: rate_map.size].reshape(rate_map.shape), 1e-6
     )
+
+
+def map_scores(policy, rate_map: np.ndarray) -> dict[str, float]:
+    """The policy's own `map_score` and `low_map_score` (scores.py, unnormalized) of one camera's map."""
+    cells = torch.from_numpy(rate_map).reshape(1, -1)
+    n = cells.shape[1]
+    scores = token_scores(
+        cells, 0, policy.map_cell_mean[:n].cpu(), policy.map_cell_std[:n].cpu(), policy.config.map_top_k
+    )
+    return {name: float(scores[name]) for name in ("map_score", "low_map_score")}
 
 
 def episode(policy, pre, post, env: ArmGraspEnv, seed: int, record_at=None):
@@ -163,10 +174,10 @@ def main() -> None:
                 continue
             z_maps.append(z)
             if t < len(clean_maps):  # the clean episode of the same seed at the same step
-                z_clean = z_map(policy, clean_maps[t])
-                for name, sign in (("map_score", 1.0), ("low_map_score", -1.0)):
-                    paired[name][0].append(float((sign * z_clean).max()))
-                    paired[name][1].append(float((sign * z).max()))
+                clean_scores, scores = map_scores(policy, clean_maps[t]), map_scores(policy, rate_map)
+                for name, (neg, pos) in paired.items():
+                    neg.append(clean_scores[name])
+                    pos.append(scores[name])
     env.close()
     clean_env.close()
     separation = {name: auroc(neg, pos) for name, (neg, pos) in paired.items() if neg and pos}
