@@ -378,6 +378,10 @@ def test_lerobot_vib_eval_takes_the_training_recordings_settings_and_records_its
     assert (env["observation_height"], env["observation_width"], env["cameras"]) == (48, 64, ["scene"])
     assert env["dataset_root"] == str(arm_recording) and env["episode_length"] == 3
     assert env["perturbation"]["occlusion"] is False
+    # and beside the trace, the observation embedding at every step (an RND can be fitted on rollouts)
+    from lerobot_vib.scripts.eval_uncertainty import read_embeddings
+
+    assert [e.shape[0] for e in read_embeddings(out / "embeddings.safetensors", 1)] == [3]
     proc = subprocess.run(
         [str(BIN / "lerobot-vib-eval"), f"--policy.path={arm_checkpoint}", "--env.type=vib_arm",
          "--env.workspace=near", f"--output_dir={tmp_path / 'near'}"],

@@ -100,6 +100,12 @@ def test_tiny_benchmark_trains_evaluates_reports_and_resumes_without_repeating_a
         m is None or 0 <= m < normal["vib"]["steps"][i] for i, m in enumerate(normal["vib"]["grasp_missed_at"])
     )
     assert normal["act"]["scores"] is None
+    # beside each traced VIB cell, its rollouts' observation embeddings per step (an RND fitted on rollouts)
+    from lerobot_vib.scripts.eval_uncertainty import read_embeddings
+
+    embeddings = read_embeddings(benchmark.embeddings_path(cell_path(cfg, "vib", "normal", 1000)), 2)
+    assert [len(e) for e in embeddings] == normal["vib"]["steps"] and embeddings[0].shape[1] > 0
+    assert not benchmark.embeddings_path(cell_path(cfg, "act", "normal", 1000)).exists()
     assert json.loads(cell_path(cfg, "vib", "validation", 1000, "eq6:0.01").read_text())["seeds"] == [400_000, 400_001]
     for v in ("vib", "act"):
         s = results["success"][v]["normal"]
@@ -433,8 +439,16 @@ def test_the_token_comparison_trains_the_token_network_beside_the_same_act_rows_
     cfg = BenchmarkConfig(
         dataset=DatasetConfig(repo_id="x"), env=ArmGraspEnvConfig(), output_dir=tmp_path, variants=["tokens"]
     )
-    assert cfg.variants == ["act_chosen", "act_like_vib", "vib_tokens_beta0", "vib_tokens", "vib_chosen"]
-    assert set(cfg.networks()) == {"act", "act_like_vib", "vib_tokens_beta0", "vib_tokens", "vib"}
+    assert cfg.variants == [
+        "act_chosen", "act_like_vib", "act_like_vib_nofloor", "vib_tokens_beta0", "vib_tokens", "vib_chosen",
+    ]  # fmt: skip
+    networks = {"act", "act_like_vib", "act_like_vib_nofloor", "vib_tokens_beta0", "vib_tokens", "vib"}
+    assert set(cfg.networks()) == networks
+    # the control: ACT + VIB's trunk and weight average with the normalization floor off, and only that
+    like = benchmark.train_command("act_like_vib", cfg, tmp_path / "l", seed=1000)
+    nofloor = benchmark.train_command("act_like_vib_nofloor", cfg, tmp_path / "l", seed=1000)
+    assert "--policy.normalization_floor=null" in nofloor and "--policy.type=act_like_vib" in nofloor
+    assert [a for a in like if "normalization_floor" not in a] == [a for a in nofloor if "normalization_floor" not in a]
     tokens = benchmark.train_command("vib_tokens", cfg, tmp_path / "t", seed=1000)
     beta0 = benchmark.train_command("vib_tokens_beta0", cfg, tmp_path / "t0", seed=1000)
     pooled = benchmark.train_command("vib", cfg, tmp_path / "p", seed=1000)
@@ -551,3 +565,57 @@ def test_every_scores_auroc_reads_the_occluders_own_steps_and_counts_an_unknown_
     }
     every = benchmark_report.score_aurocs(cells)["low_map_score"]
     assert every == {"occlusion": 1.0, "black": 1.0}
+
+
+def test_the_shipped_checkpoint_stops_as_the_report_measured_and_its_card_says_what_it_predicted(
+    arm_data, tmp_path, monkeypatch
+):
+    """The report's monitor goes into a checkpoint through lerobot-vib-calibrate's own threshold code, on the
+    successful clean validation rollouts; its test TPR / TNR land in the calibration and the model card."""
+    import numpy as np
+
+    from lerobot_vib.failure import Monitor, calibrate_monitor, evaluate
+    from lerobot_vib.modeling_vib import VIBPolicy
+    from lerobot_vib.scripts.failure_report import cell_episodes
+
+    cfg = tiny_config(arm_data, tmp_path / "bench", variants=["vib"], alpha=0.1)
+    source = benchmark.calibrated("vib", cfg, 1000, benchmark.train("vib", cfg, 1000))
+    rng = np.random.default_rng(0)
+
+    def cell(condition: str, seeds: range, success: list[bool]) -> dict:
+        def trace(ok: bool) -> list[float]:
+            return (np.r_[np.ones(10), np.full(10, 1.0 if ok else 3.0)] + 0.1 * rng.random(20)).tolist()
+
+        return {"condition": condition, "seeds": list(seeds), "success": success,
+                "scores": {"rate": [trace(ok) for ok in success], "embedding_rnd": [trace(ok) for ok in success]},
+                "grasp_missed_at": [None if ok else 15 for ok in success]}  # fmt: skip
+
+    validation = cell("validation", range(400_000, 400_030), [i % 3 != 0 for i in range(30)])
+    tests = {"normal": cell("normal", range(600_000, 600_010), [i % 2 == 0 for i in range(10)]),
+             "occlusion": cell("occlusion", range(600_000, 600_010), [False] * 10)}  # fmt: skip
+    cells = {("vib", "validation", 1000, "eq6:0.01"): validation}
+    cells.update({("vib", c, 1000, None): x for c, x in tests.items()})
+    monitor = Monitor(("rate", "embedding_rnd"), window=5)
+    results = {"failure_prediction": {"vib": {"shipped": {"monitor": monitor.as_dict()}}}}
+    [out] = benchmark.ship_checkpoints(cfg, cells, results)
+
+    assert out == cfg.output_dir / "shipped" / "vib" / "seed_1000"
+    policy = VIBPolicy.from_pretrained(out)
+    c = policy.config.calibration
+    report = calibrate_monitor(monitor, cell_episodes(validation), 0.1)  # the report's own calibration
+    assert policy.config.uncertainty_score == "rate" and c.gamma_score == "rate" and c.rollout_episodes == "successes"
+    assert (c.window, c.window_aggregate) == (5, "mean") and c.gamma_band is None
+    assert c.gamma == pytest.approx(report.thresholds["rate"])
+    assert c.and_gammas == {"embedding_rnd": pytest.approx(report.thresholds["embedding_rnd"])}
+    assert c.rollout_successes == 20 and len(c.rollout_seeds) == 30
+    measured = evaluate(report, [e for x in tests.values() for e in cell_episodes(x)])
+    assert c.monitor_metrics["tpr"] == measured.tpr == 1.0 and c.monitor_metrics["n_failed"] == 15
+    assert c.monitor_metrics["tnr"] == measured.tnr and "test seeds 600000-600009" in c.monitor_measured_on
+    assert (policy.config.temporal_ensemble, policy.config.safety.enabled) == ("uncertainty", False)  # eq6:0.01
+    from huggingface_hub import ModelCard
+
+    monkeypatch.setattr(ModelCard, "validate", lambda self, *a, **k: None)  # validation is an online call
+    card = policy.generate_model_card("local/arm", "vib", None, None).text
+    assert "As a failure predictor" in card and "TPR 1.00" in card
+    source_config = json.loads((source / "config.json").read_text())["calibration"]
+    assert source_config["monitor_metrics"] == {} and source_config["gamma"] != c.gamma  # the source is untouched

@@ -195,6 +195,8 @@ def test_calibrate_command_writes_the_statistics_into_the_checkpoint(tiny_checkp
             ["--conformal_alpha=0.05", "--conformal_episodes=[1]"],
             "needs at least 19 held-out episodes; `--conformal_episodes` has 1",
         ),
+        (["--rollout_episodes=successes"], "`--rollout_episodes` chooses among rollouts: give `--rollouts=` too"),
+        (["--rollout_episodes=failures"], "`--rollout_episodes` must be one of ('all', 'successes')"),
     ],
 )
 def test_calibrate_names_bad_arguments_before_any_work(args, message, tiny_checkpoint, tiny_dataset_root, tmp_path):
@@ -334,6 +336,41 @@ def test_an_and_of_scores_gets_each_members_threshold_from_the_same_clean_rollou
                             and_traces={"embedding_rnd": partner})  # fmt: skip
     with pytest.raises(VIBConfigError, match="repeats the stop's own score"):
         gamma_from_rollouts(dataset, info, 0.1, "r.json", threshold="max", traces=traces, and_traces={"rate": traces})
+
+
+def test_a_threshold_set_on_the_successful_rollouts_ignores_the_failures_and_their_traces():
+    """As failure prediction calibrates (failure.py): a failing clean rollout's high u is not taken for normal."""
+    from lerobot_vib.configuration_vib import CalibrationConfig
+    from lerobot_vib.scripts.calibrate import gamma_from_rollouts
+
+    rng = np.random.default_rng(2)
+    ok = [1 + 0.1 * rng.random(30) for _ in range(20)]
+    failed = [np.r_[np.ones(20), np.full(10, 5.0)] for _ in range(6)]
+    traces = ok[:10] + failed + ok[10:]
+    partner = [2 + rng.random(30) for _ in traces]
+    dataset = CalibrationConfig(dataset_repo_id="local/arm", n_frames=100, rate_mean=2.0, rate_std=0.5,
+                                score_means={"embedding_rnd": 4.0})  # fmt: skip
+    info = {**_rollouts([float(t.max()) for t in traces], 2.0), "score_means": {"rate": 2.0, "embedding_rnd": 4.0}}
+    for i, ep in enumerate(info["per_episode"]):
+        ep["success"] = not 10 <= i < 16
+    kw = dict(threshold="max", traces=traces, and_traces={"embedding_rnd": partner})
+    every = gamma_from_rollouts(dataset, info, 0.1, "r.json", **kw)
+    good = gamma_from_rollouts(dataset, info, 0.1, "r.json", **kw, episodes="successes")
+    assert every.gamma == pytest.approx(5.0) and every.rollout_episodes == "all"
+    assert good.gamma == pytest.approx(conformal_gamma([t.max() for t in ok], 0.1)) and good.gamma < 1.2
+    kept = partner[:10] + partner[16:]
+    assert good.and_gammas == {"embedding_rnd": pytest.approx(conformal_gamma([p.max() for p in kept], 0.1))}
+    assert good.rollout_episodes == "successes" and len(good.rollout_seeds) == 26  # every rollout seen is named
+    band = gamma_from_rollouts(dataset, info, 0.1, "r.json", threshold="time_band", traces=traces,
+                               episodes="successes")  # fmt: skip
+    assert max(band.gamma_band) < 1.5
+    for ep in info["per_episode"][8:]:
+        ep["success"] = False
+    with pytest.raises(VIBConfigError, match=r"needs at least 9 successful rollouts; r\.json has 8"):
+        gamma_from_rollouts(dataset, info, 0.1, "r.json", threshold="max", episodes="successes")
+    del info["per_episode"][0]["success"]
+    with pytest.raises(VIBConfigError, match="does not say which rollouts succeeded"):
+        gamma_from_rollouts(dataset, info, 0.1, "r.json", threshold="max", episodes="successes")
 
 
 def _perturbed(**perturbation) -> dict:
@@ -492,6 +529,11 @@ def test_the_model_card_states_the_data_score_r_bar_gamma_its_method_and_the_mea
     assert (result.metric_type, result.metric_value, result.dataset_type) == ("success_rate", 0.7, "local/arm")
     bare = VIBPolicy(make_config(uncertainty_score="rate")).generate_model_card("local/arm", "vib", None, None).text
     assert "Not calibrated" in bare and "no evaluation is recorded" in bare
+    assert "successful ones" not in text
+    policy.config.calibration = gamma_from_rollouts(dataset, rollouts, 0.3, "r.json", threshold="max",
+                                                    episodes="successes")  # fmt: skip
+    text = policy.generate_model_card("local/arm", "vib", None, None).text
+    assert "gamma = 6 on `rate`" in text and "Only the 7 successful ones among those rollouts set it" in text
 
 
 def test_a_calibrated_checkpoint_reaches_the_hub_through_its_http_api(

@@ -29,6 +29,24 @@ def successes(n: int, **kw) -> list[Episode]:
     return [episode(True, **kw) for _ in range(n)]
 
 
+def test_a_score_fitted_on_a_rollout_neither_sets_nor_judges_its_thresholds():
+    clean = successes(20)
+    # in-sample: the score reads its own fitting rollouts far lower than new ones
+    fitted = [Episode(True, {"a": np.full(50, 0.01), "b": np.ones(50)}, fitted_on=frozenset({"a"})) for _ in range(20)]
+    monitor = Monitor(("a",))
+    alone, mixed = calibrate_monitor(monitor, clean, 0.1), calibrate_monitor(monitor, clean + fitted, 0.1)
+    assert mixed.thresholds == alone.thresholds and mixed.n_calibration == 20
+    # a score that was not fitted on them still reads them
+    assert calibrate_monitor(Monitor(("b",)), clean + fitted, 0.1).n_calibration == 40
+    with pytest.raises(CalibrationError, match="successful clean rollouts"):
+        calibrate_monitor(monitor, fitted + successes(3), 0.1)
+    # the choice judges a monitor on the rollouts its scores did not see: a fitted failure counts for nothing
+    blind = Episode(False, {"a": np.full(50, 9.0), "b": np.ones(50)}, fitted_on=frozenset({"a"}))
+    quiet = Episode(False, {"a": np.ones(50), "b": np.ones(50)})
+    _, ranking = choose_monitor([monitor], {0: clean + [blind, quiet]}, 0.1)
+    assert ranking[0]["tpr"] == 0.0  # judged on `quiet` alone; `blind` would have made it 0.5
+
+
 def test_a_window_mean_and_sum_match_the_definition_including_the_first_steps():
     u = np.array([1.0, 3.0, 5.0, 7.0])
     np.testing.assert_allclose(windowed(u, 2, "mean"), [1.0, 2.0, 4.0, 6.0])
@@ -165,7 +183,7 @@ def test_the_report_ships_the_validation_choice_and_states_its_test_numbers_in_o
         }
 
     cfg = SimpleNamespace(variants=["vib_tokens"], train_seeds=[1000], conditions=["normal", "gaussian"],
-                          alpha=0.1, failure_alphas=[0.1, 0.3])  # fmt: skip
+                          alpha=0.1, failure_alphas=[0.1, 0.3], rnd_steps=50)  # fmt: skip
     cells = {
         ("vib_tokens", "validation", 1000, "act:0.3"): cell("validation", 40, 4, 400_000),
         ("vib_tokens", "normal", 1000, None): cell("normal", 20, 3, 600_000),
@@ -179,3 +197,38 @@ def test_the_report_ships_the_validation_choice_and_states_its_test_numbers_in_o
     assert lines[3] == failure_report.shipped_line(result) and lines[3].startswith("shipped monitor: TPR 1.00")
     assert any(line.startswith("| FIPER (Römer") for line in lines)
     assert failure_report.plot({"vib_tokens": result}, tmp_path, {}) == ["failure_roc.png"]
+
+
+def test_an_rnd_fitted_on_clean_rollouts_sees_half_the_successes_and_reads_a_new_scene_higher(tmp_path):
+    from safetensors.numpy import save_file
+
+    from lerobot_vib.scripts import failure_report
+
+    rng = np.random.default_rng(5)
+
+    def cell(name: str, condition: str, seeds: list[int], success: list[bool], shift: float) -> dict:
+        embeddings = [(rng.normal(size=(30, 8)) + shift).astype(np.float32) for _ in seeds]
+        save_file({f"episode_{i}": e for i, e in enumerate(embeddings)}, str(tmp_path / f"{name}.safetensors"))
+        return {
+            "condition": condition, "seeds": seeds, "success": success,
+            "scores": {"a": [np.ones(30).tolist() for _ in seeds]},
+            "embeddings_file": str(tmp_path / f"{name}.safetensors"),
+        }  # fmt: skip
+
+    key = ("vib_tokens", "validation", 1000, "act:0.3")
+    cells = {
+        key: cell("val", "validation", list(range(400_000, 400_012)), [True] * 10 + [False] * 2, 0.0),
+        ("vib_tokens", "occlusion", 1000, None): cell("occ", "occlusion", [600_000, 600_001], [False, False], 6.0),
+        ("act_chosen", "normal", 1000, None): {"condition": "normal", "seeds": [600_000], "success": [True]},
+    }
+    out = failure_report.with_rollout_rnd(cells, "vib_tokens", 1000, "act:0.3", steps=300)
+    assert set(out) == {key, ("vib_tokens", "occlusion", 1000, None)}  # other rows are not touched
+    assert out[key]["fitted_on"] == {failure_report.ROLLOUT_RND: [400_000, 400_002, 400_004, 400_006, 400_008]}
+    assert "fitted_on" not in out[("vib_tokens", "occlusion", 1000, None)]  # no test rollout is fitted on
+    val_u = np.array(out[key]["scores"][failure_report.ROLLOUT_RND])
+    occluded_u = np.array(out[("vib_tokens", "occlusion", 1000, None)]["scores"][failure_report.ROLLOUT_RND])
+    assert val_u[0:10:2].mean() == pytest.approx(1.0, rel=1e-3)  # normalized on the frames it was fitted on
+    assert occluded_u.mean() > 3 * val_u[1:10:2].mean()
+    episodes = failure_report.cell_episodes(out[key])
+    assert [failure_report.ROLLOUT_RND in e.fitted_on for e in episodes[:4]] == [True, False, True, False]
+    assert "fitted_on" not in cells[key]  # the cells given are left as they are

@@ -222,6 +222,11 @@ def describe_calibration(config, rate_mean: float, training_data: str | None = N
         n = len(c.rollout_seeds or c.conformal_episodes or [])
         how = _GAMMA_METHODS.get(c.gamma_method or "", c.gamma_method or "unknown").format(n=n, alpha=c.conformal_alpha)
         lines.append(f"- Stop threshold gamma = {c.gamma:.4g} on `{c.gamma_score or 'rate'}`, set by {how}.")
+        if c.rollout_episodes == "successes" and c.rollout_successes is not None:
+            lines.append(
+                f"- Only the {c.rollout_successes} successful ones among those rollouts set it (failure "
+                "prediction's calibration: false alarms are bounded on episodes that would have succeeded)."
+            )
         if c.and_gammas:
             partners = ", ".join(f"`{k}` above {g:.4g}" for k, g in c.and_gammas.items())
             lines.append(f"- The stop fires only when also {partners} (an AND of scores, each set as gamma was).")
@@ -229,6 +234,18 @@ def describe_calibration(config, rate_mean: float, training_data: str | None = N
             lines.append(
                 f"- The stop reads u's {c.window_aggregate} over each env's last {c.window} steps, as gamma was set."
             )
+    if m := c.monitor_metrics:
+
+        def f(key: str, fmt: str = ".2f") -> str:
+            return format(m[key], fmt) if m.get(key) is not None else "-"
+
+        lines.append(
+            f"- As a failure predictor (a failed episode alarmed is a true positive, a successful one a false alarm): "
+            f"TPR {f('tpr')}, TNR {f('tnr')}, detection time {f('detection_time')} of the episode, median lead time "
+            f"{f('median_lead_time', '.0f')} steps before the first missed grasp; {f('n_failed', '.0f')} failed and "
+            f"{f('n_succeeded', '.0f')} successful rollouts that set nothing "
+            f"({c.monitor_measured_on or 'not recorded'})."
+        )
     lines.append(
         f"- Safety stop: {'on' if safety.enabled else 'off (enable with `--policy.safety.enabled=true`)'}; action "
         f"`{safety.action}`, resumes after {safety.resume_steps} calm steps, halts after {safety.max_hold_steps}."

@@ -162,6 +162,10 @@ class CalibrationConfig:
         rollout_seeds: The env seeds of the rollouts a "conformal_rollouts" gamma was computed on.
         rollout_successes: How many of those rollouts succeeded (what the model card reports as measured).
         rollout_command: The `lerobot-vib-eval` command that made them, as it was typed.
+        rollout_episodes: Which of those rollouts set gamma: "all" (every clean rollout: the stop bounds how
+            often it interrupts the policy in the env it was trained for) or "successes" (the successful ones
+            only, as failure prediction calibrates: it bounds false alarms on episodes that would have
+            succeeded, and lets a failing episode's u stand out). None: "all" (calibrations before this field).
         score_means: Mean over the calibration frames of every other score (`scores.py`), by name: each
             normalizes its u as R_bar does the rate's.
         score_stds: Their standard deviations over the same frames.
@@ -184,6 +188,10 @@ class CalibrationConfig:
             stop reads one score. The stop compares gamma_t * min(m_t / gamma_t, m_k / gamma_k, ...) with gamma_t,
             which is above it exactly when every member is above its own threshold, and falls below the resume
             threshold when any member falls. Set by `lerobot-vib-calibrate --rollouts=... --and_scores=[...]`.
+        monitor_metrics: What the stop, as calibrated here, measured as a failure predictor on rollouts that set
+            nothing (failure.py): "tpr", "tnr", "detection_time", "median_lead_time", "n_failed", "n_succeeded",
+            "alpha". Empty: not measured. `lerobot-vib-benchmark` writes it into the checkpoints it ships.
+        monitor_measured_on: Which rollouts those are (seeds, conditions, the command), as the model card says.
     """
 
     dataset_repo_id: str | None = None
@@ -199,6 +207,7 @@ class CalibrationConfig:
     rollout_seeds: list[int] | None = None
     rollout_successes: int | None = None
     rollout_command: str | None = None
+    rollout_episodes: str | None = None
     score_means: dict[str, float] = field(default_factory=dict)
     score_stds: dict[str, float] = field(default_factory=dict)
     gamma_score: str | None = None
@@ -208,6 +217,8 @@ class CalibrationConfig:
     window: int = 1
     window_aggregate: str = "mean"
     and_gammas: dict[str, float] = field(default_factory=dict)
+    monitor_metrics: dict[str, float] = field(default_factory=dict)
+    monitor_measured_on: str | None = None
 
     def __post_init__(self):
         for name, value in self.and_gammas.items():

@@ -15,9 +15,10 @@ alarms at the first step at which every member is above its own threshold: FIPER
 Calibration, by split-conformal prediction on successful clean rollouts only, at a false-alarm level alpha:
 
     constant   tau   = the ceil((n + 1)(1 - alpha))-th smallest of max_t m_t over the n calibration episodes
-    band       tau_t = q b_t: b_t the mean of m_t over every other calibration episode (the shape), q the
-               conformal threshold of max_t m_t / b_t over the others (metrics.time_indexed_band), a
-               time-varying band as FAIL-Detect calibrates one
+    band       tau_t = q b_t: b_t the mean of m_t over the first half of the calibration episodes (the
+               shape), q the conformal threshold of max_t m_t / b_t over the second half
+               (metrics.time_indexed_band), a time-varying band as FAIL-Detect calibrates one; the halves
+               `lerobot-vib-calibrate --rollouts` takes, so that the stop it sets is the one measured here
 
 so that a successful clean episode exchangeable with the calibration ones alarms with probability at most
 alpha. The members of an AND are each calibrated at alpha; the AND alarms no more often than any of them.
@@ -91,6 +92,9 @@ class Episode:
     condition: str = CLEAN
     failure_moment: int | None = None  # the first missed grasp's step; None: none, or not measurable
     seed: int | None = None
+    # Scores fitted on this very rollout (an RND fitted on clean rollouts): they read it in-sample, so it
+    # neither sets nor judges their thresholds
+    fitted_on: frozenset[str] = frozenset()
 
     @property
     def length(self) -> int:
@@ -172,15 +176,21 @@ def _band_for(tau: float | np.ndarray, length: int) -> np.ndarray:
     return np.concatenate([tau, np.full(max(length - len(tau), 0), tau[-1])])[:length]
 
 
-def calibration_episodes(episodes: Sequence[Episode]) -> list[Episode]:
-    """The rollouts a threshold may be set on: successful and clean, nothing else."""
-    return [e for e in episodes if e.success and e.condition == CLEAN]
+def unseen_by(episodes: Sequence[Episode], scores: Sequence[str]) -> list[Episode]:
+    """The rollouts none of `scores` was fitted on."""
+    return [e for e in episodes if not e.fitted_on & set(scores)]
+
+
+def calibration_episodes(episodes: Sequence[Episode], scores: Sequence[str] = ()) -> list[Episode]:
+    """The rollouts a threshold of `scores` may be set on: successful and clean, and not fitted on by any of
+    them; nothing else."""
+    return [e for e in unseen_by(episodes, scores) if e.success and e.condition == CLEAN]
 
 
 def calibrate_monitor(monitor: Monitor, episodes: Sequence[Episode], alpha: float) -> CalibratedMonitor:
     """Thresholds of `monitor` at level `alpha` from the successful clean ones among `episodes` (the others
-    are ignored: failures and perturbed rollouts never set a threshold)."""
-    calib = calibration_episodes(episodes)
+    are ignored: failures and perturbed rollouts never set a threshold, nor rollouts a member was fitted on)."""
+    calib = calibration_episodes(episodes, monitor.scores)
     needed = conformal_min_scores(alpha) * (2 if monitor.threshold == "band" else 1)
     if len(calib) < needed:
         raise CalibrationError(
@@ -197,7 +207,8 @@ def calibrate_monitor(monitor: Monitor, episodes: Sequence[Episode], alpha: floa
         else:
             if min(float(t.min()) for t in traces) <= 0:
                 raise CalibrationError(f"A band needs a positive score; {score!r} is not on every step.")
-            thresholds[score] = time_indexed_band(traces[0::2], traces[1::2], alpha)
+            half = len(traces) // 2  # as `lerobot-vib-calibrate --rollouts` splits them: the same band
+            thresholds[score] = time_indexed_band(traces[:half], traces[half:], alpha)
     return CalibratedMonitor(monitor, alpha, thresholds, len(calib), [e.seed for e in calib])
 
 
@@ -276,14 +287,16 @@ def choose_monitor(
 ) -> tuple[Monitor | None, list[dict]]:
     """The candidate with the best balanced accuracy on the validation rollouts, averaged over the groups of
     `validation` (one per training seed, each calibrated on its own successful clean rollouts); a tie goes to
-    the earlier detection, then to the one listed first. Returns it (None: none could be calibrated) and every
-    candidate's row, best first. Only validation rollouts are read."""
+    the earlier detection, then to the one listed first. A monitor is judged on the rollouts its scores were not
+    fitted on. Returns it (None: none could be calibrated) and every candidate's row, best first. Only validation
+    rollouts are read."""
     rows = []
     for i, monitor in enumerate(candidates):
         per_group = []
         for episodes in validation.values():
             try:
-                per_group.append(evaluate(calibrate_monitor(monitor, episodes, alpha), episodes))
+                calibrated = calibrate_monitor(monitor, episodes, alpha)
+                per_group.append(evaluate(calibrated, unseen_by(episodes, monitor.scores)))
             except CalibrationError:
                 per_group = []
                 break

@@ -80,6 +80,9 @@ class UncertaintyStep:
     # (B,) what the stop compared with the threshold: u over the calibrated window (`calibration.window`; u
     # itself when it is 1)
     stop_value: Tensor | None = None
+    # (B, D) the observation embedding "embedding_rnd" reads, kept while every score is traced
+    # (`trace_all_scores`): an RND can then be fitted on rollouts as well as on the training frames
+    embedding: Tensor | None = None
 
     def row(self, i: int = 0) -> dict[str, float | bool]:
         """Batch element i as plain numbers (for traces)."""
@@ -288,6 +291,7 @@ class VIBPolicy(PreTrainedPolicy):
         self._episode_step = 0
         self._active_score = cfg.uncertainty_score or "rate"
         self._rate_map: Tensor | None = None
+        self._embedding: Tensor | None = None
         self._halted_before: Tensor | None = None
         self._progress: Tensor | None = None  # (B,) steps each env ran, stopped ones not counted
         self._recent_u: dict[str, list[Tensor]] = {}  # per score the stop reads: its last `window` steps' u
@@ -427,6 +431,7 @@ class VIBPolicy(PreTrainedPolicy):
         if self._reuse_last_plan_uncertainty():
             posterior, rate, u, scores = None, self.last_step.rate, self.last_step.u, self.last_step.scores
             self._rate_map = self.last_step.rate_map
+            self._embedding = self.last_step.embedding
         else:
             partners = self.config.calibration.and_gammas
             every = self.trace_all_scores or bool(partners)
@@ -469,6 +474,7 @@ class VIBPolicy(PreTrainedPolicy):
             score=score,
             scores=scores,
             rate_map=self._rate_map,
+            embedding=self._embedding,
             thresholds=thresholds,
             stop_value=stop_u,
         )
@@ -594,8 +600,11 @@ class VIBPolicy(PreTrainedPolicy):
             self._rate_map = network.rate_map(token_rates)
             cell_mean, cell_std = self.map_cell_mean, self.map_cell_std
             scores = token_scores(token_rates, network.n_1d_tokens, cell_mean, cell_std, self.config.map_top_k)
-            if self.embedding_rnd.fitted and wanted in (None, "embedding_rnd"):
-                scores["embedding_rnd"] = self.embedding_rnd.error(network.embedding(posterior))
+            rnd_wanted = self.embedding_rnd.fitted and wanted in (None, "embedding_rnd")
+            embedding = network.embedding(posterior) if rnd_wanted or self.trace_all_scores else None
+            self._embedding = embedding if self.trace_all_scores else None
+            if rnd_wanted:
+                scores["embedding_rnd"] = self.embedding_rnd.error(embedding)
             return posterior, scores
         self._rate_map = None
         parts = network.encoder.parts(batch)
@@ -609,8 +618,11 @@ class VIBPolicy(PreTrainedPolicy):
                 scores["image_rate"] = network.bottleneck.rate(network.posterior_of(held))
         if "image_rate" in scores:
             scores["low_image_rate"] = 1.0 / scores["image_rate"]
-        if self.embedding_rnd.fitted and wanted in (None, "embedding_rnd"):
-            scores["embedding_rnd"] = self.embedding_rnd.error(self.rnd_embedding(parts, batch))
+        rnd_wanted = self.embedding_rnd.fitted and wanted in (None, "embedding_rnd")
+        embedding = self.rnd_embedding(parts, batch) if rnd_wanted or self.trace_all_scores else None
+        self._embedding = embedding if self.trace_all_scores else None
+        if rnd_wanted:
+            scores["embedding_rnd"] = self.embedding_rnd.error(embedding)
         return posterior, scores
 
     def _safety_action(self, batch: dict[str, Tensor], batch_size: int, last_command: Tensor | None) -> Tensor:

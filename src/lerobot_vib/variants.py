@@ -37,6 +37,9 @@ memory instead (`--policy.encoder=tokens`, token_network.py), beside the same AC
 
     vib_tokens_beta0  vib_tokens_beta0  the token network with beta = 0
     vib_tokens        vib_tokens        the token network with the preset's beta
+
+and one control: `act_like_vib_nofloor`, ACT + VIB's trunk and weight average with the normalization floor
+off, which says whether ACT loses anything to the floor that VIB's pooled network lost (the contact cue).
 """
 
 from __future__ import annotations
@@ -68,6 +71,7 @@ NETWORKS: dict[str, str] = {
     "act_like_vib": "act",  # and VIB's trunk, weight average and normalization floor (baselines/)
     "vib_tokens": "vib",  # the preset on the token network (`--policy.encoder=tokens`)
     "vib_tokens_beta0": "vib",  # and with beta = 0
+    "act_like_vib_nofloor": "act",  # act_like_vib with the normalization floor off (a control)
 }
 CHOSEN = "chosen"  # a row whose run time is chosen on validation episodes among the benchmark's `runtimes`
 
@@ -103,6 +107,7 @@ VARIANTS: dict[str, Variant] = {
     "vib_rnd": Variant("VIB r/RND", "vib", "uncertainty", "rnd"),
     "act_chosen": Variant("ACT (LeRobot's)", "act", CHOSEN, None),
     "act_like_vib": Variant("ACT + VIB's trunk, EMA, floor", "act_like_vib", CHOSEN, None),
+    "act_like_vib_nofloor": Variant("ACT + VIB's trunk, EMA, no floor", "act_like_vib_nofloor", CHOSEN, None),
     "vib_beta0": Variant("VIB, beta = 0", "vib_beta0", CHOSEN, "vib_beta0"),
     "vib_chosen": Variant("VIB (arm preset)", "vib", CHOSEN, "vib"),
     "vib_tokens_beta0": Variant("VIB tokens, beta = 0", "vib_tokens_beta0", CHOSEN, "vib_tokens_beta0"),
@@ -110,7 +115,9 @@ VARIANTS: dict[str, Variant] = {
 }
 TABLE_I = ("act", "act_te", "vib", "vib_queue", "act_u", "act_rnd", "vib_wo_u", "vib_rnd")
 COMPARISON = ("act_chosen", "act_like_vib", "vib_beta0", "vib_chosen")
-TOKEN_COMPARISON = ("act_chosen", "act_like_vib", "vib_tokens_beta0", "vib_tokens", "vib_chosen")
+TOKEN_COMPARISON = (
+    "act_chosen", "act_like_vib", "act_like_vib_nofloor", "vib_tokens_beta0", "vib_tokens", "vib_chosen",
+)  # fmt: skip
 _RUNTIME_MODES = {"queue": "none", "act": "act", "eq6": "uncertainty"}
 
 

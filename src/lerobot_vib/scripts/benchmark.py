@@ -66,7 +66,9 @@ from tqdm import tqdm
 
 from ..calibration import mean_plus_2std_gamma
 from ..configuration_vib import VIBConfigError
+from ..failure import CalibratedMonitor, Monitor, evaluate
 from ..modeling_vib import VIBPolicy
+from ..provenance import env_record, training_recording
 from ..rnd import RND, RNDConfig, train_rnd
 from ..sim import env_config  # noqa: F401  (registers --env.type=aloha_fast and vib_arm)
 from ..sim.perturbations import CONDITIONS, SCENE_CONDITIONS
@@ -80,9 +82,10 @@ from ..variants import (
     parse_runtime,
     queue_steps,
 )
-from .benchmark_report import write_report
-from .calibrate import _write, calibrate
-from .eval_uncertainty import UncertaintyCapture
+from .benchmark_report import runtime_of, write_report
+from .calibrate import _write, calibrate, gamma_from_rollouts
+from .eval_uncertainty import UncertaintyCapture, write_embeddings
+from .failure_report import cell_episodes
 
 logger = logging.getLogger(__name__)
 
@@ -354,19 +357,21 @@ def train_command(network: str, cfg: BenchmarkConfig, out: Path, seed: int) -> l
     if network in ("vib_tokens", "vib_tokens_beta0"):
         beta = ["--policy.beta=0"] if network == "vib_tokens_beta0" else []
         return [_bin("lerobot-train"), f"--config_path={cfg.preset}", "--policy.encoder=tokens", *beta, *common]
-    if network not in ("act", "act_like_vib"):
+    if network not in ("act", "act_like_vib", "act_like_vib_nofloor"):
         raise ValueError(f"Unknown network {network!r}; choose from {list(NETWORKS)}.")
     preset = json.loads(cfg.preset.read_text())
     run = [f"--{k}={preset[k]}" for k in ("batch_size", "num_workers", "log_freq") if k in preset]
     like_vib = []
-    if network == "act_like_vib":
-        policy = preset["policy"]
+    if network != "act":
+        policy = dict(preset["policy"])
+        if network == "act_like_vib_nofloor":
+            policy["normalization_floor"] = None
         like_vib = [
             f"--policy.{k}={'null' if policy.get(k) is None else policy[k]}" for k in LIKE_VIB_FIELDS if k in policy
         ]
     return [
         _bin("lerobot-train"),
-        f"--policy.type={network}",
+        f"--policy.type={'act' if network == 'act' else 'act_like_vib'}",
         "--policy.push_to_hub=false",
         "--policy.pretrained_backbone_weights=null",
         *act_recipe_flags(preset),
@@ -543,6 +548,12 @@ def cell_path(cfg: BenchmarkConfig, variant: str, condition: str, seed: int, run
     return cfg.output_dir / "cells" / condition / variant / f"seed_{seed}.json"
 
 
+def embeddings_path(cell_file: Path) -> Path:
+    """Beside a traced VIB cell: its rollouts' observation embeddings per step (an RND fitted on clean
+    rollouts reads them; failure_report.py)."""
+    return cell_file.with_suffix(".embeddings.safetensors")
+
+
 def env_condition(condition: str) -> str:
     """The perturbation (sim/perturbations.CONDITIONS) a cell's condition rolls out under."""
     if condition == VALIDATION:
@@ -591,6 +602,8 @@ def run_cell(cfg: BenchmarkConfig, variant: str, condition: str, policy, process
         "scores": _every_score(policy, episodes),
         "grasp_missed_at": [e.get("grasp_missed_at") for e in episodes],
         "wall_s": round(time.time() - start, 1),
+        # popped before the cell is saved: they go to a file of their own (`embeddings_path`)
+        "episodes": episodes,
     }
 
 
@@ -678,7 +691,113 @@ def run_benchmark(cfg: BenchmarkConfig, report_only: bool = False) -> dict | Non
         path = cell_path(cfg, *cell)
         if path.exists():
             cells[cell] = json.loads(path.read_text())
-    return write_report(cfg, cells, WallClock.total(cfg.output_dir / "wall_time.json"), planned=len(planned_cells(cfg)))
+            if embeddings_path(path).exists():
+                cells[cell]["embeddings_file"] = str(embeddings_path(path))
+    results = write_report(
+        cfg, cells, WallClock.total(cfg.output_dir / "wall_time.json"), planned=len(planned_cells(cfg))
+    )
+    ship_checkpoints(cfg, cells, results)
+    return results
+
+
+def ship_checkpoints(cfg: BenchmarkConfig, cells: dict, results: dict) -> list[Path]:
+    """Per scored VIB row and training seed, its calibrated checkpoint with the report's shipped monitor in its
+    stop, under shipped/<variant>/seed_<s>/ (rewritten with the report; the checkpoint it copies is left as it
+    is). The thresholds are set exactly as `lerobot-vib-calibrate --rollouts=... --rollout_episodes=successes`
+    sets them (`gamma_from_rollouts`), on the row's clean validation rollouts at its chosen run time; the row's
+    run time comes along; and what that stop measured on the test rollouts, which set nothing, goes into
+    `calibration.monitor_metrics` and the model card."""
+    choices_file = cfg.output_dir / "choices.json"
+    choices = json.loads(choices_file.read_text()) if choices_file.exists() else {}
+    written = []
+    for variant, result in (results.get("failure_prediction") or {}).items():
+        if "shipped" not in result:
+            continue
+        monitor = Monitor.from_dict(result["shipped"]["monitor"])
+        network = VARIANTS[variant].chunks
+        for seed in cfg.train_seeds:
+            runtime = runtime_of(choices, variant, seed)
+            validation = cells.get((variant, VALIDATION, seed, runtime))
+            tests = [cells[(variant, c, seed, None)] for c in cfg.conditions if (variant, c, seed, None) in cells]
+            source = _calibrated_path(cfg, network, seed)
+            if validation is None or not tests or source is None:
+                continue
+            out = cfg.output_dir / "shipped" / variant / f"seed_{seed}"
+            policy = _shipped_policy(cfg, variant, network, source, runtime, monitor, validation, tests, seed)
+            preprocessor, _ = make_pre_post_processors(policy.config, pretrained_path=str(source))
+            staging = out.with_name(f"{out.name}.partial")
+            shutil.rmtree(staging, ignore_errors=True)
+            _write(policy, preprocessor, policy.config.calibration, source, staging)
+            shutil.rmtree(out, ignore_errors=True)  # this command's own output, rewritten with each report
+            staging.replace(out)
+            written.append(out)
+            logger.info("Shipped %s, seed %d, with its monitor (%s): %s", variant, seed, monitor.name, out)
+    return written
+
+
+def _calibrated_path(cfg: BenchmarkConfig, network: str, seed: int) -> Path | None:
+    """The calibrated checkpoint a row's cells were recorded with (`calibrated`), None where there is none."""
+    for path in (
+        given_checkpoint(network, cfg),
+        cfg.output_dir / "calibrated" / network / f"seed_{seed}",
+        train_dir(cfg, network, seed) / "checkpoints" / f"{cfg.steps:06d}" / "pretrained_model",
+    ):
+        calibrated = path is not None and (Path(path) / "config.json").exists()
+        if calibrated and PreTrainedConfig.from_pretrained(path).calibration.score_means:
+            return Path(path)
+    return None
+
+
+def _shipped_policy(
+    cfg: BenchmarkConfig, variant, network, source: Path, runtime, monitor: Monitor, validation, tests, seed
+) -> VIBPolicy:
+    policy = build_variant(variant, {network: VIBPolicy.from_pretrained(source)}, runtime=runtime)
+    config = policy.config
+    score, partners = monitor.scores[0], list(monitor.scores[1:])
+    config.uncertainty_score = score
+    calibration = config.calibration
+    means = {"rate": calibration.rate_mean, **calibration.score_means}
+    traces = {name: [np.asarray(t, dtype=np.float64) for t in validation["scores"][name]] for name in monitor.scores}
+    info = {
+        "rate_mean": calibration.rate_mean,
+        "score": score,
+        "score_mean": means.get(score),
+        "score_means": {name: means.get(name) for name in monitor.scores},
+        "safety_enabled": False,
+        "env": env_record(cfg.env),
+        "per_episode": [
+            {"seed": s, "success": bool(ok), "u_max": float(np.max(t))}
+            for s, ok, t in zip(validation["seeds"], validation["success"], traces[score], strict=True)
+        ],
+        "command": f"lerobot-vib-benchmark validation rollouts, run time {runtime} ({cfg.output_dir})",
+    }
+    recorded = training_recording(source)
+    calibration = gamma_from_rollouts(
+        calibration, info, cfg.alpha, f"{variant}'s validation rollouts (seed {seed})", score,
+        threshold="max" if monitor.threshold == "constant" else "time_band", traces=traces[score],
+        policy_config=config, recording=recorded[1] if recorded else None, window=monitor.window,
+        window_aggregate=monitor.aggregate, and_traces={name: traces[name] for name in partners},
+        episodes="successes",
+    )  # fmt: skip
+    # What this stop, with these very thresholds, predicts on the test rollouts
+    thresholds = {score: np.asarray(calibration.gamma_band) if calibration.gamma_band else calibration.gamma}
+    thresholds.update(calibration.and_gammas)
+    stop = CalibratedMonitor(monitor, cfg.alpha, thresholds, calibration.rollout_successes or 0)
+    metrics = evaluate(stop, [e for c in tests for e in cell_episodes(c)]).as_dict()
+    seeds = sorted({s for c in tests for s in c["seeds"]})
+    config.calibration = dataclasses.replace(
+        calibration,
+        monitor_metrics={k: float(metrics[k]) for k in MONITOR_METRICS if metrics.get(k) is not None},
+        monitor_measured_on=(
+            f"lerobot-vib-benchmark test seeds {seeds[0]}-{seeds[-1]} under "
+            f"{', '.join(c['condition'] for c in tests)}, training seed {seed}, alpha = {cfg.alpha}; "
+            f"{cfg.output_dir / 'report.md'}"
+        ),
+    )
+    return policy
+
+
+MONITOR_METRICS = ("tpr", "tnr", "detection_time", "median_lead_time", "n_failed", "n_succeeded")
 
 
 def _run_cells(cfg: BenchmarkConfig, clock: "WallClock") -> None:
@@ -732,7 +851,9 @@ def _run_seed(cfg: BenchmarkConfig, seed: int, todo: list[Cell], clock: "WallClo
             policy.trace_all_scores = True  # every score per step, for failure prediction (failure.py)
         cell = run_cell(cfg, variant, condition, policy, processors[VARIANTS[variant].chunks])
         cell.update(train_seed=seed, runtime=runtime_used)
-        _write_json(cell_path(cfg, variant, condition, seed, runtime), cell)
+        path = cell_path(cfg, variant, condition, seed, runtime)
+        write_embeddings(cell.pop("episodes"), embeddings_path(path))  # first: a cell file means complete
+        _write_json(path, cell)
         clock.tick()
         logger.info(
             "seed %d, %s / %s (%s): %d/%d in %.0f s",

@@ -62,6 +62,8 @@ from ..scores import SCORES, episode_disagreement, fit_embedding_rnd, score_stat
 
 logger = logging.getLogger(__name__)
 
+ROLLOUT_EPISODES = ("all", "successes")  # which clean rollouts set a threshold (`--rollout_episodes`)
+
 
 @dataclass
 class CalibrationDataset:
@@ -95,6 +97,9 @@ class CalibrateConfig:
     window: With `rollouts`: the stop reads u aggregated over each env's last `window` steps, and the threshold
         is set on that (`calibration.window`; failure.py's windowed monitors). 1: u itself.
     window_aggregate: "mean" or "sum" over the window.
+    rollout_episodes: With `rollouts`: "all" clean rollouts set the threshold, or only the "successes" (failure
+        prediction's calibration, failure.py: false alarms are bounded on episodes that would have succeeded,
+        and a failing episode's u is not taken for normal). `calibration.rollout_episodes`.
     and_scores: With `rollouts`: other scores the stop also needs above their own threshold (an AND, FIPER's
         combination), each set at `conformal_alpha` on the same rollouts' per-step u of that score over the same
         window (the `u_<score>` columns lerobot-vib-eval writes); `calibration.and_gammas`.
@@ -123,6 +128,7 @@ class CalibrateConfig:
     window: int = 1
     window_aggregate: str = "mean"
     and_scores: list[str] = field(default_factory=list)
+    rollout_episodes: str = "all"
     output_dir: Path | None = None
     in_place: bool = False
     push_to_hub: bool = False
@@ -175,6 +181,12 @@ class CalibrateConfig:
                 f"`--window` must be >= 1 and `--window_aggregate` mean or sum, got {self.window} and "
                 f"{self.window_aggregate!r}."
             )
+        if self.rollout_episodes not in ROLLOUT_EPISODES:
+            raise VIBConfigError(
+                f"`--rollout_episodes` must be one of {ROLLOUT_EPISODES}, got {self.rollout_episodes!r}."
+            )
+        if self.rollout_episodes != "all" and self.rollouts is None:
+            raise VIBConfigError("`--rollout_episodes` chooses among rollouts: give `--rollouts=` too.")
         if unknown := sorted(set(self.and_scores) - set(SCORES)):
             raise VIBConfigError(f"`--and_scores` must name scores of {SCORES}; unknown: {unknown}.")
         if (self.window > 1 or self.and_scores) and self.rollouts is None:
@@ -452,6 +464,7 @@ def gamma_from_rollouts(
     window: int = 1,
     window_aggregate: str = "mean",
     and_traces: dict[str, list[np.ndarray]] | None = None,
+    episodes: str = "all",
 ) -> CalibrationConfig:
     """`calibration` with gamma = the split-conformal threshold on clean rollouts' per-episode max u of the
     score the checkpoint reads u from (`expected_score`); with `threshold="time_band"`, the time-indexed band
@@ -463,7 +476,8 @@ def gamma_from_rollouts(
     (provenance.py), u normalized as this checkpoint normalizes it. With `window` > 1 both thresholds are set on
     u aggregated over the last `window` steps (failure.windowed), from the per-step `traces`. `and_traces`
     ({score: per-step u of each rollout}) adds an AND: each score's threshold, conformal at `alpha` on its
-    windowed maxima, into `and_gammas`."""
+    windowed maxima, into `and_gammas`. `episodes="successes"` sets every threshold on the successful rollouts
+    only (failure prediction's calibration)."""
     if calibration.rate_mean is None:
         raise VIBConfigError(
             "The checkpoint has no R_bar: calibrate it on its dataset first, evaluate that checkpoint, then use "
@@ -502,6 +516,22 @@ def gamma_from_rollouts(
             f"{source} has rollouts without a finite max u (seeds {unknown}): fix them, then calibrate."
         )
     scores = [ep["u_max"] for ep in info["per_episode"]]
+    if episodes == "successes":
+        if not all("success" in ep for ep in info["per_episode"]):
+            raise VIBConfigError(
+                f"{source} does not say which rollouts succeeded: `--rollout_episodes=successes` needs "
+                "lerobot-vib-eval's uncertainty_info.json."
+            )
+        n = len(info["per_episode"])
+        if any(len(t) != n for t in [*([traces] if traces is not None else []), *(and_traces or {}).values()]):
+            raise VIBConfigError(f"{source}'s per-step traces do not hold one record per rollout ({n}).")
+        kept = [i for i, ep in enumerate(info["per_episode"]) if ep["success"]]
+        scores = [scores[i] for i in kept]
+        traces = None if traces is None else [traces[i] for i in kept]
+        and_traces = {k: [v[i] for i in kept] for k, v in (and_traces or {}).items()} or None
+    elif episodes != "all":
+        raise ValueError(f"`episodes` must be one of {ROLLOUT_EPISODES}, got {episodes!r}.")
+    what = "successful rollouts" if episodes == "successes" else "rollouts"
     if window > 1 or and_traces:
         if traces is None or len(traces) != len(scores):
             what = f"A window of {window} steps" if window > 1 else "An AND of scores"
@@ -514,7 +544,7 @@ def gamma_from_rollouts(
     if len(scores) < needed:
         raise VIBConfigError(
             f"A {'time-indexed band' if threshold == 'time_band' else 'conformal threshold'} at alpha={alpha} needs "
-            f"at least {needed} rollouts; {source} has {len(scores)}."
+            f"at least {needed} {what}; {source} has {len(scores)}."
             + (" Evaluate more clean rollouts, or use `--threshold=max`." if threshold == "time_band" else "")
         )
     band = None
@@ -548,6 +578,7 @@ def gamma_from_rollouts(
         if all("success" in ep for ep in info["per_episode"])
         else None,
         rollout_command=info.get("command"),
+        rollout_episodes=episodes,
         frames_above_gamma=None,
         episodes_above_gamma=float(np.mean(above)),
         window=window,
@@ -682,6 +713,7 @@ def _calibrate_on_rollouts(cfg: CalibrateConfig) -> CalibrationConfig:
         window=cfg.window,
         window_aggregate=cfg.window_aggregate,
         and_traces=and_traces,
+        episodes=cfg.rollout_episodes,
     )
     policy = VIBPolicy.from_pretrained(source, config=cfg.policy)
     preprocessor, _ = make_pre_post_processors(policy.config, pretrained_path=str(source))

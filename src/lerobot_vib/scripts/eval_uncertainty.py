@@ -22,6 +22,9 @@ and `eval_info.json`). Beside `eval_info.json` it writes
                          and stop_value, what the stop compared with it (u, or u over the calibrated window),
                          then u_<score> for every score whose training mean is known (an AND's thresholds
                          are set on them: `lerobot-vib-calibrate --rollouts=... --and_scores=[...]`)
+  embeddings.safetensors  per episode (`episode_<i>`, in eval_info's order), the observation embedding
+                         "embedding_rnd" reads at every step, (steps, D): an RND can be fitted on rollouts
+                         (`lerobot-vib-calibrate --rollouts=... --rnd_fit=rollouts`)
 
 Every `select_action` of a VIB policy leaves the step's rate, u and stop decision per env in
 `policy.last_step`; this command keeps them while LeRobot's `rollout` runs a batch of envs, then cuts each
@@ -111,6 +114,7 @@ class UncertaintyCapture:
                         "safety": s.threshold_active,
                         "stop_value": (s.u if s.stop_value is None else s.stop_value).float().cpu().numpy(),
                         "rate_map": None if s.rate_map is None else s.rate_map.float().cpu().numpy(),
+                        "embedding": None if s.embedding is None else s.embedding.float().cpu().numpy(),
                         "all_scores": {k: v.float().cpu().numpy() for k, v in (s.scores or {}).items()},
                         "all_u": {k: s.scores[k].float().cpu().numpy() / m for k, m in means.items()},
                     }
@@ -185,6 +189,10 @@ class UncertaintyCapture:
                     # (T, cameras, H', W') the token network's image-token rates at each step, else None
                     "rate_map": np.stack([s["rate_map"][i] for s in steps[:n]])
                     if steps and all(s.get("rate_map") is not None for s in steps[:n])
+                    else None,
+                    # (T, D) the observation embedding "embedding_rnd" reads, at each step (traced VIB rows only)
+                    "embedding": np.stack([s["embedding"][i] for s in steps[:n]])
+                    if steps and all(s.get("embedding") is not None for s in steps[:n])
                     else None,
                     "threshold": np.array(
                         [s["gamma"] if s.get("thresholds") is None else s["thresholds"][i] for s in steps[:n]],
@@ -339,6 +347,40 @@ def _fmt(value: float | None) -> str:
     return "-" if value is None else f"{value:.3f}"
 
 
+EMBEDDINGS_FILE = "embeddings.safetensors"
+
+
+def write_embeddings(episodes: list[dict[str, Any]], path: Path) -> bool:
+    """Each episode's (steps, D) observation embeddings as `episode_<i>`; nothing written (False) when an episode
+    has none (a policy without them, or a record made before they were kept)."""
+    from safetensors.numpy import save_file
+
+    if not episodes or any(e.get("embedding") is None for e in episodes):
+        return False
+    path.parent.mkdir(parents=True, exist_ok=True)
+    tmp = path.with_name(path.name + ".tmp")
+    save_file({f"episode_{i}": np.ascontiguousarray(e["embedding"], dtype=np.float32) for i, e in enumerate(episodes)},
+              str(tmp))  # fmt: skip
+    tmp.replace(path)  # a file that exists is complete
+    return True
+
+
+def read_embeddings(path: Path, n_episodes: int) -> list[np.ndarray]:
+    """What `write_embeddings` wrote, in episode order; a clear error for a file that does not match."""
+    from safetensors.numpy import load_file
+
+    if not path.is_file():
+        raise FileNotFoundError(
+            f"No observation embeddings at {path}: these rollouts were recorded without them (rerun them with this "
+            "version's lerobot-vib-eval)."
+        )
+    arrays = load_file(str(path))
+    keys = [f"episode_{i}" for i in range(n_episodes)]
+    if sorted(arrays) != sorted(keys):
+        raise ValueError(f"{path} holds {len(arrays)} episodes' embeddings, expected {n_episodes} ({keys[0]}..).")
+    return [arrays[k] for k in keys]
+
+
 def write_trace(episodes: list[dict[str, Any]], path: Path) -> None:
     traced = [n for n in SCORES if episodes and all(n in ep.get("score_u", {}) for ep in episodes)]
     with path.open("w", newline="") as f:
@@ -416,6 +458,7 @@ def eval_with_uncertainty(cfg: EvalPipelineConfig) -> dict:
     info["score_means"] = record.score_means  # what each u_<score> column of the trace was normalized by
     (out / "uncertainty_info.json").write_text(json.dumps(info, indent=2))
     write_trace(episodes, out / "uncertainty_trace.csv")
+    write_embeddings(episodes, out / EMBEDDINGS_FILE)
     pictures = write_pictures(episodes, info, out / "pictures")
     o = info["overall"]
     logger.info(

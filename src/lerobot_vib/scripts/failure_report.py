@@ -12,6 +12,13 @@ Per scored VIB row whose cells hold every score (`--calibrate=true`):
    TPR-against-TNR curve). Beside it, for reference: each score alone at one step with a constant threshold
    (the stop as it is), and the best FIPER-like AND (embedding RND and chunk disagreement) on validation.
 
+An RND on the policy's observation embedding is measured fitted two ways: on the training frames
+("embedding_rnd", as `lerobot-vib-calibrate` fits it) and on clean rollouts ("embedding_rnd_rollouts", FIPER's
+way). The second is fitted per training seed on every other successful clean validation rollout of the chosen
+run time (the embeddings of those seeds' successful rollouts at every validation run time: the cells'
+`*.embeddings.safetensors`); the other successes set its thresholds, and the rollouts it was fitted on neither
+set nor judge them (failure.Episode.fitted_on). Its u is e over its mean on the frames it was fitted on.
+
 Nothing on the test seeds chooses anything.
 """
 
@@ -24,6 +31,7 @@ from typing import Any
 import numpy as np
 
 from ..failure import (
+    CLEAN,
     CalibrationError,
     Episode,
     FailureMetrics,
@@ -47,22 +55,69 @@ PUBLISHED = [
     ("FAIL-Detect, hardware", None, None, None, 0.72),
 ]
 TARGETS = {"tpr": 0.90, "tnr": 0.90, "detection_time": 0.30, "benign_stopped": 0.10}
+ROLLOUT_RND = "embedding_rnd_rollouts"  # the embedding RND fitted on clean validation rollouts
 
 
 def cell_episodes(cell: dict) -> list[Episode]:
     """The cell's rollouts as failure.Episode (its `scores`: u per step of every score)."""
     scores = cell.get("scores") or {}
     missed = cell.get("grasp_missed_at") or [None] * len(cell["success"])
+    fitted = cell.get("fitted_on") or {}  # score -> the seeds of this cell's rollouts it was fitted on
     return [
         Episode(
             success=bool(ok),
             scores={name: np.asarray(traces[i], dtype=np.float64) for name, traces in scores.items()},
-            condition="normal" if cell["condition"] == VALIDATION else cell["condition"].removeprefix(PERTURBED),
+            condition=CLEAN if cell["condition"] == VALIDATION else cell["condition"].removeprefix(PERTURBED),
             failure_moment=missed[i],
             seed=cell["seeds"][i],
+            fitted_on=frozenset(name for name, seeds in fitted.items() if cell["seeds"][i] in seeds),
         )
         for i, ok in enumerate(cell["success"])
     ]
+
+
+def _embeddings(cell: dict) -> list[np.ndarray] | None:
+    from .eval_uncertainty import read_embeddings
+
+    path = cell.get("embeddings_file")
+    return read_embeddings(Path(path), len(cell["success"])) if path else None
+
+
+def with_rollout_rnd(cells: dict, variant: str, seed: int, runtime: str, steps: int) -> dict:
+    """The cells of (`variant`, training seed `seed`) with ROLLOUT_RND added to their scores (the module
+    docstring): fitted on every other successful clean validation rollout at run time `runtime`, by seed. The
+    cells are copied; without embeddings (cells recorded before they were kept) they come back as they are."""
+    import torch
+
+    from ..scores import EmbeddingRND, fit_embedding_rnd
+
+    own = {k: c for k, c in cells.items() if k[0] == variant and k[2] == seed}
+    chosen = own.get((variant, VALIDATION, seed, runtime))
+    if chosen is None or not all(c.get("embeddings_file") and c.get("scores") for c in own.values()):
+        return own
+    successes = [s for s, ok in zip(chosen["seeds"], chosen["success"], strict=True) if ok]
+    fit_seeds = set(successes[0::2])
+    fit = [
+        e
+        for (_, condition, _, _), c in own.items()
+        if condition == VALIDATION
+        for s, ok, e in zip(c["seeds"], c["success"], _embeddings(c), strict=True)
+        if ok and s in fit_seeds
+    ]
+    if len(fit) < 2:
+        return own
+    frames = torch.from_numpy(np.concatenate(fit)).float()
+    rnd = EmbeddingRND(frames.shape[1])
+    fit_embedding_rnd(rnd, frames, steps=steps)
+    mean = float(rnd.error_mean)
+    out = {}
+    with torch.no_grad():
+        for key, c in own.items():
+            u = [np.round(rnd.error(torch.from_numpy(e).float()).double().numpy() / mean, 5) for e in _embeddings(c)]
+            out[key] = {**c, "scores": {**c["scores"], ROLLOUT_RND: [x.tolist() for x in u]}}
+            if key[1] == VALIDATION:
+                out[key]["fitted_on"] = {ROLLOUT_RND: sorted(fit_seeds)}
+    return out
 
 
 def _test_metrics(monitor: Monitor, validation: dict, test: dict, alpha: float) -> dict | None:
@@ -111,9 +166,11 @@ def failure_prediction(cfg, cells: dict, runtime_of) -> dict:
     """results["failure_prediction"]: per scored row, the validation ranking, the shipped monitor and its test
     metrics. `runtime_of(variant, seed)`: the row's chosen run time at that training seed."""
     out = {}
+    cells = dict(cells)
     for variant in cfg.variants:
         validation, test = {}, {}
         for seed in cfg.train_seeds:
+            cells.update(with_rollout_rnd(cells, variant, seed, runtime_of(variant, seed), cfg.rnd_steps))
             cell = cells.get((variant, VALIDATION, seed, runtime_of(variant, seed)))
             if cell is None or not cell.get("scores"):
                 continue
@@ -134,7 +191,11 @@ def failure_prediction(cfg, cells: dict, runtime_of) -> dict:
         candidates = candidate_monitors(names)
         # The policy's stop runs any candidate with a constant threshold on its partners (an AND's first score
         # may have a band): `lerobot-vib-calibrate --rollouts --window --and_scores` sets it.
-        runnable = [m for m in candidates if len(m.scores) == 1 or m.threshold == "constant"]
+        # The RND fitted on rollouts is measured beside them, not shipped: the policy's stop reads the RND that
+        # `lerobot-vib-calibrate` fitted on the training frames.
+        runnable = [
+            m for m in candidates if (len(m.scores) == 1 or m.threshold == "constant") and ROLLOUT_RND not in m.scores
+        ]
         shipped, ranking = choose_monitor(runnable, validation, cfg.alpha)
         if shipped is None:
             out[variant] = {"error": "no monitor could be calibrated on the validation rollouts' successes"}
@@ -145,6 +206,10 @@ def failure_prediction(cfg, cells: dict, runtime_of) -> dict:
         fiper = [r["monitor"] for r in ranking if set(r["monitor"].scores) == set(FIPER_PAIR)]
         if fiper:
             references["FIPER-like: embedding RND AND chunk disagreement, best on validation"] = fiper[0]
+        if ROLLOUT_RND in names:
+            _, on_rollouts = choose_monitor([m for m in candidates if ROLLOUT_RND in m.scores], validation, cfg.alpha)
+            if on_rollouts:
+                references["best with the RND fitted on clean rollouts, on validation"] = on_rollouts[0]["monitor"]
         result = {
             "validation_seeds": {
                 str(s): [e.seed for e in eps][:1] + [e.seed for e in eps][-1:] for s, eps in validation.items()
@@ -152,6 +217,9 @@ def failure_prediction(cfg, cells: dict, runtime_of) -> dict:
             "validation_episodes": {str(s): len(eps) for s, eps in validation.items()},
             "validation_successes": {str(s): sum(e.success for e in eps) for s, eps in validation.items()},
             "calibration_episodes": {str(s): len(calibration_episodes(eps)) for s, eps in validation.items()},
+            "rollout_rnd_fit_episodes": {
+                str(s): sum(ROLLOUT_RND in e.fitted_on for e in eps) for s, eps in validation.items()
+            },
             "candidates": len(candidates),
             "ranking": [{**r, "monitor": r["monitor"].as_dict(), "name": r["monitor"].name} for r in ranking[:15]],
             "shipped": {"monitor": shipped.as_dict(), "name": shipped.name, "alpha": cfg.alpha},
@@ -183,7 +251,8 @@ def ship_command(m: Monitor, alpha: float) -> str:
         "`lerobot-vib-calibrate --policy.path=<checkpoint> "
         f"--policy.uncertainty_score={m.scores[0]} --rollouts=<their uncertainty_info.json> --conformal_alpha={alpha} "
         f"--threshold={'max' if m.threshold == 'constant' else 'time_band'} --window={m.window} "
-        f"--window_aggregate={m.aggregate}{partners}`: the policy's stop then runs this monitor."
+        f"--window_aggregate={m.aggregate}{partners} --rollout_episodes=successes`: the policy's stop then runs "
+        "this monitor, its thresholds set on the successful rollouts as here."
     )
 
 
@@ -263,6 +332,15 @@ def markdown(cfg, failure: dict, labels: dict[str, str]) -> list[str]:
             )
         for label, tpr, tnr, det, bacc in PUBLISHED:
             lines.append(f"| {label} | {_f(tpr)} | {_f(tnr)} | {_f(det)} | {_f(bacc)} |")
+        if fitted := {s: n for s, n in (result.get("rollout_rnd_fit_episodes") or {}).items() if n}:
+            lines += [
+                "",
+                f"`{ROLLOUT_RND}` is the embedding RND fitted on clean rollouts instead of the training frames: per "
+                "training seed on every other successful clean validation rollout ("
+                + ", ".join(f"seed {s}: {n}" for s, n in fitted.items())
+                + "), the rest setting its thresholds. It is measured here and not shipped: the policy's stop "
+                "reads the RND that `lerobot-vib-calibrate` fits on the training frames (`embedding_rnd`).",
+            ]
         if any(ref.get("test") is None for ref in result["references"].values()):
             lines += ["", "A row of dashes could not be calibrated: too few successful clean validation rollouts."]
         met = _targets(test)
