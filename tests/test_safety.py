@@ -343,7 +343,7 @@ def test_each_stop_resume_and_halt_is_logged_once_with_u_and_the_threshold_in_fo
         # stop at step 1, resume after two calm steps, stop again at step 5 and halt after 4 stopped steps
         for u in [1.0, 3.0, 1.0, 1.0, 1.0, 3.0, 3.0, 3.0, 3.0, 3.0, 3.0]:
             u = torch.tensor([u])
-            policy._log_stop_events(monitor.update(u), u, 2.0, torch.tensor([True]))
+            policy.stop.log_events(monitor.update(u), u, 2.0, torch.tensor([True]), policy._episode_step, monitor)
             policy._episode_step += 1
     lines = [r.getMessage() for r in caplog.records]
     assert sum("Safety stop on:" in line for line in lines) == 1 and "safety.gamma (set by hand" in lines[0]

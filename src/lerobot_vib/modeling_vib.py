@@ -11,7 +11,7 @@ The policy plumbs; a network does the learning. Two networks, each in its own mo
 
 Around the network the policy keeps what acting needs: the rate's running mean and the calibration (u = R /
 R_bar), the scores of scores.py, temporal ensembling (runtime.py, ensembling.py) and the safety stop
-(safety.py).
+(stop.py reads u for it, safety.py decides).
 """
 
 from __future__ import annotations
@@ -40,8 +40,9 @@ from .inputs import check_observation, check_training_batch
 from .pooled_network import EncoderParts, PooledNetwork
 from .processor_vib import vib_dataset_stats
 from .runtime import ChunkRuntime
-from .safety import PolicySafetyAction, RobotUnits, SafetyMonitor
+from .safety import PolicySafetyAction, RobotUnits
 from .scores import MAP_SCORES, ChunkDisagreement, EmbeddingRND, token_scores
+from .stop import PolicyStop
 from .token_network import TokenNetwork
 
 logger = logging.getLogger(__name__)
@@ -292,9 +293,7 @@ class VIBPolicy(PreTrainedPolicy):
         self._active_score = cfg.uncertainty_score or "rate"
         self._rate_map: Tensor | None = None
         self._embedding: Tensor | None = None
-        self._halted_before: Tensor | None = None
-        self._progress: Tensor | None = None  # (B,) steps each env ran, stopped ones not counted
-        self._recent_u: dict[str, list[Tensor]] = {}  # per score the stop reads: its last `window` steps' u
+        self.stop = PolicyStop(cfg, self.score_mean, lambda step: self.stop_threshold(step))
         self.last_step = None
 
     # ------------------------------------------------------------------------------------------- uncertainty
@@ -338,42 +337,9 @@ class VIBPolicy(PreTrainedPolicy):
             # Nothing acts on u: trace the paper's rate, which training already normalizes, rather than refuse.
             logger.warning("%s Until then u is the rate's.", message)
             self._active_score = "rate"
-        safety = self.config.safety
-        calibration = self.config.calibration
-        stale_gamma = calibration.gamma is not None and (calibration.gamma_score or "rate") != score
-        if safety.enabled and safety.gamma is None and stale_gamma:
-            logger.warning(
-                "The calibrated gamma was set on the %s score, but u is read from %s: the stop uses mean + 2 "
-                "std of %s instead. Set gamma on this score (lerobot-vib-calibrate --rollouts=...).",
-                calibration.gamma_score or "rate",
-                score,
-                score,
-            )
-        if (safety.action == "home" or safety.home_pose is not None) and not self.robot_units.known(ACTION):
-            raise RuntimeError(
-                "`safety.home_pose` is in robot units, but the policy lacks the action normalization statistics "
-                "to convert it: build the policy with `dataset_stats` (lerobot-train does) or use `hold`."
-            )
-        gamma = self.stop_threshold() if safety.enabled else None
-        if gamma is not None and not math.isfinite(gamma):
-            raise RuntimeError("The safety stop is enabled but its threshold gamma is unknown: set `safety.gamma`.")
-        if gamma is not None and gamma < 1 and not self.config.calibration.gamma_band:
-            logger.warning(
-                "The safety stop's threshold gamma = %.3g is below 1, the mean u of the training data: most "
-                "in-distribution steps will stop the policy. Check `safety.gamma` / `calibration.gamma`.",
-                gamma,
-            )
-        resume = safety.resume_threshold if safety.resume_threshold is not None else gamma
-        if resume is not None and gamma is not None and self.config.calibration.gamma_band:
-            resume = min(resume, gamma)  # the band moves gamma every step; the hysteresis stays below it
-        self.runtime.reset(SafetyMonitor(gamma, resume, safety.resume_steps, safety.max_hold_steps))
-        if safety.enabled and not self._threshold_announced:  # once per policy, not once per episode
-            self._threshold_announced = True
-            logger.warning(
-                "Safety stop on: u is %s over its training mean; the stop threshold in force is %s (gamma = %.4g "
-                "at the first step).",
-                self._active_score, threshold_source(self.config), gamma,
-            )  # fmt: skip
+        monitor = self.stop.start(self._active_score, self.robot_units, announce=not self._threshold_announced)
+        self._threshold_announced |= self.config.safety.enabled  # once per policy, not once per episode
+        self.runtime.reset(monitor)
 
     # ---------------------------------------------------------------------------------------------- input checks
 
@@ -441,25 +407,15 @@ class VIBPolicy(PreTrainedPolicy):
                 scores["chunk_disagreement"] = self._disagreement.update(decode())
             u = scores[score] / self.score_mean(score)
 
-        gamma, thresholds = self.stop_threshold(), None
-        if self.config.calibration.gamma_band and self.runtime.monitor.gamma is not None:
-            if self.config.safety.band_index == "progress":  # each env reads the band at its own progress
-                if self._progress is None:
-                    self._progress = torch.zeros(batch_size, dtype=torch.long, device=u.device)
-                thresholds = torch.tensor(
-                    [self.stop_threshold(int(p)) for p in self._progress], dtype=u.dtype, device=u.device
-                )
-                gamma = self.stop_threshold(int(self._progress[0]))  # env 0's, exactly as calibrated
-                self.runtime.monitor.set_threshold(thresholds, self.config.safety.resume_threshold)
-            else:
-                self.runtime.monitor.set_threshold(gamma, self.config.safety.resume_threshold)
-        stop_u = self._stop_value(u, scores, gamma if thresholds is None else thresholds)
+        monitor = self.runtime.monitor
+        gamma, thresholds = self.stop.threshold(monitor, self._episode_step, u)
+        in_force = gamma if thresholds is None else thresholds
+        stop_u = self.stop.value(u, scores, in_force)
         action, decision = self.runtime.step(
             u, decode, lambda last: self._safety_action(batch, batch_size, last), unknown=~obs_finite, stop_u=stop_u
         )
-        if self._progress is not None:  # a stopped env holds still: its task did not advance
-            self._progress += (~decision.stopped.to(self._progress.device)).long()
-        self._log_stop_events(decision, stop_u, gamma if thresholds is None else thresholds, obs_finite)
+        self.stop.advance(decision.stopped)
+        self.stop.log_events(decision, stop_u, in_force, obs_finite, self._episode_step, monitor)
         self._episode_step += 1
         self.last_rate = rate
         self.last_step = UncertaintyStep(
@@ -479,69 +435,6 @@ class VIBPolicy(PreTrainedPolicy):
             stop_value=stop_u,
         )
         return action
-
-    def _windowed(self, u: Tensor, score: str = "") -> Tensor:
-        """m_t: u aggregated over each env's last `calibration.window` steps (failure.windowed); u itself for a
-        window of 1. A non-finite u in the window stays unknown."""
-        window = self.config.calibration.window
-        if window == 1:
-            return u
-        recent = [*self._recent_u.get(score, [])[-(window - 1) :], u]
-        self._recent_u[score] = recent
-        total = torch.stack(recent).sum(dim=0)
-        return total / len(recent) if self.config.calibration.window_aggregate == "mean" else total
-
-    def _stop_value(self, u: Tensor, scores: dict[str, Tensor] | None, gamma: float | Tensor) -> Tensor:
-        """What the stop compares with gamma_t: the windowed u, or with `calibration.and_gammas` gamma_t times
-        the smallest ratio of each member's windowed u to its threshold (above gamma_t only when all are)."""
-        m = self._windowed(u)
-        partners = self.config.calibration.and_gammas
-        if not partners:
-            return m
-        threshold = torch.as_tensor(gamma, dtype=m.dtype, device=m.device).expand_as(m)
-        ratio = m / threshold
-        for name, g in partners.items():
-            if scores is None or name not in scores:
-                raise RuntimeError(f"The stop needs the {name!r} score at every step, and this step has none.")
-            partner = self._windowed(scores[name] / self.score_mean(name), name)
-            ratio = torch.minimum(ratio, partner / g)
-        return ratio * threshold
-
-    def _log_stop_events(self, decision, u: Tensor, gamma: float | Tensor, obs_finite: Tensor) -> None:
-        """One line per stop, resume and halt, when it happens, with u and the threshold in force: what
-        `lerobot-eval` and `lerobot-rollout` show of the stop. `gamma`: one, or one per env."""
-        step = self._episode_step
-        for i in torch.nonzero(decision.just_stopped).flatten().tolist():
-            g = float(gamma[i]) if isinstance(gamma, Tensor) else gamma
-            if not bool(obs_finite[i]) or not math.isfinite(float(u[i])):
-                cause = "the observation or u is not finite (unknown means stop)"
-            else:
-                value = f"{self._stop_quantity()} = {float(u[i]):.3f}"
-                cause = f"{value} > gamma = {g:.3f}, {threshold_source(self.config)}"
-            logger.warning("Safety stop: env %d at episode step %d: %s.", i, step, cause)
-        resume = self.runtime.monitor.resume_threshold
-        for i in torch.nonzero(decision.resumed).flatten().tolist():
-            below = float(resume[i]) if isinstance(resume, Tensor) else float(resume)
-            logger.warning(
-                "Safety stop ended: env %d resumes at episode step %d (%s = %.3f, below %.3f for %d steps).",
-                i, step, self._stop_quantity(), float(u[i]), below, self.config.safety.resume_steps,
-            )  # fmt: skip
-        if decision.halted is not None:
-            halted_now = decision.halted & ~self._halted_before if self._halted_before is not None else decision.halted
-            for i in torch.nonzero(halted_now).flatten().tolist():
-                logger.warning(
-                    "Safety stop halted: env %d at episode step %d, after %d stopped steps "
-                    "(safety.max_hold_steps); only policy.resume() ends it.",
-                    i, step, self.config.safety.max_hold_steps,
-                )  # fmt: skip
-            self._halted_before = decision.halted.clone()
-
-    def _stop_quantity(self) -> str:
-        c = self.config.calibration
-        quantity = "u" if c.window == 1 else f"u's {c.window_aggregate} over {c.window} steps"
-        if c.and_gammas:
-            quantity += " (AND " + ", ".join(f"{k} above {g:.3g}" for k, g in c.and_gammas.items()) + ")"
-        return quantity
 
     def threshold_in_force(self, step: int | None = None) -> dict[str, Any]:
         """The stop threshold in force and where it comes from, in one place: {"enabled", "gamma" (at episode
