@@ -132,6 +132,8 @@ def test_failure_prediction_adds_perturbed_validation_cells_for_scored_vib_rows_
     cells = planned_cells(cfg)
     perturbed = [c for c in cells if c[1].startswith("validation:")]
     assert perturbed == [("vib", "validation:occlusion", 1000, None)]  # the scored VIB row only, not ACT
+    # after every test cell: a run cut short has its success numbers first
+    assert cells.index(perturbed[0]) > max(cells.index(c) for c in cells if c[1] in ("normal", "occlusion"))
     assert benchmark.cell_seeds(cfg, "vib", "validation:occlusion") == [400_000, 400_001]  # validation seeds
     assert benchmark.env_condition("validation:occlusion") == "occlusion"
     assert "validation_perturbed/occlusion/vib/seed_1000.json" in cell_path(cfg, *perturbed[0]).as_posix()

@@ -638,14 +638,16 @@ Cell = tuple[str, str, int, str | None]  # (variant, condition, training seed, r
 
 
 def planned_cells(cfg: BenchmarkConfig, seeds: list[int] | None = None) -> list[Cell]:
-    """Per training seed: the validation cells, then the test cells (whose run times they choose)."""
+    """Per training seed: the validation cells, then the test cells (whose run times they choose), then the
+    perturbed validation cells, which only the report's failure prediction reads (so that a run cut short
+    has its success numbers first)."""
     cells: list[Cell] = []
     for seed in cfg.train_seeds if seeds is None else seeds:
         cells += [(v, VALIDATION, seed, rt) for v in cfg.variants for rt in cfg.validated(v)]
+        cells += [(v, c, seed, None) for c in cfg.conditions for v in cfg.variants]
         if cfg.failure_validation and cfg.calibrate:
             scored = [v for v in cfg.variants if VARIANTS[v].score is not None and NETWORKS[VARIANTS[v].score] == "vib"]
             cells += [(v, PERTURBED + c, seed, None) for c in cfg.conditions if c != "normal" for v in scored]
-        cells += [(v, c, seed, None) for c in cfg.conditions for v in cfg.variants]
     return cells
 
 
