@@ -725,7 +725,11 @@ def ship_checkpoints(cfg: BenchmarkConfig, cells: dict, results: dict) -> list[P
             if validation is None or not tests or source is None:
                 continue
             out = cfg.output_dir / "shipped" / variant / f"seed_{seed}"
-            policy = _shipped_policy(cfg, variant, network, source, runtime, monitor, validation, tests, seed)
+            try:
+                policy = _shipped_policy(cfg, variant, network, source, runtime, monitor, validation, tests, seed)
+            except VIBConfigError as e:  # the report stands without it; say why there is no checkpoint
+                logger.warning("No shipped checkpoint for %s, seed %d: %s", variant, seed, e)
+                continue
             preprocessor, _ = make_pre_post_processors(policy.config, pretrained_path=str(source))
             staging = out.with_name(f"{out.name}.partial")
             shutil.rmtree(staging, ignore_errors=True)
