@@ -220,7 +220,7 @@ def failure_prediction(cfg, cells: dict, runtime_of) -> dict:
             "rollout_rnd_fit_episodes": {
                 str(s): sum(ROLLOUT_RND in e.fitted_on for e in eps) for s, eps in validation.items()
             },
-            "candidates": len(candidates),
+            "candidates": len(runnable),
             "ranking": [{**r, "monitor": r["monitor"].as_dict(), "name": r["monitor"].name} for r in ranking[:15]],
             "shipped": {"monitor": shipped.as_dict(), "name": shipped.name, "alpha": cfg.alpha},
             "test": _test_metrics(shipped, validation, test, cfg.alpha),
