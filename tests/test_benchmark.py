@@ -619,5 +619,10 @@ def test_the_shipped_checkpoint_stops_as_the_report_measured_and_its_card_says_w
     monkeypatch.setattr(ModelCard, "validate", lambda self, *a, **k: None)  # validation is an online call
     card = policy.generate_model_card("local/arm", "vib", None, None).text
     assert "As a failure predictor" in card and "TPR 1.00" in card
+    assert benchmark.ship_checkpoints(cfg, cells, results) == [out]  # its own output is rewritten
+    (out / "config.json").write_text("{}")  # not a checkpoint it shipped: left alone, said so
+    with pytest.raises(VIBConfigError, match="not a checkpoint this benchmark shipped"):
+        benchmark.ship_checkpoints(cfg, cells, results)
+    assert (out / "config.json").read_text() == "{}"
     source_config = json.loads((source / "config.json").read_text())["calibration"]
     assert source_config["monitor_metrics"] == {} and source_config["gamma"] != c.gamma  # the source is untouched

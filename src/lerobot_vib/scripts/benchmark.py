@@ -734,11 +734,21 @@ def ship_checkpoints(cfg: BenchmarkConfig, cells: dict, results: dict) -> list[P
             staging = out.with_name(f"{out.name}.partial")
             shutil.rmtree(staging, ignore_errors=True)
             _write(policy, preprocessor, policy.config.calibration, source, staging)
+            if out.exists() and not _shipped_by_us(out):
+                shutil.rmtree(staging, ignore_errors=True)
+                raise VIBConfigError(f"{out} exists and is not a checkpoint this benchmark shipped: move it away.")
             shutil.rmtree(out, ignore_errors=True)  # this command's own output, rewritten with each report
             staging.replace(out)
             written.append(out)
             logger.info("Shipped %s, seed %d, with its monitor (%s): %s", variant, seed, monitor.name, out)
     return written
+
+
+def _shipped_by_us(path: Path) -> bool:
+    config = path / "config.json"
+    return config.is_file() and bool(
+        (json.loads(config.read_text()).get("calibration") or {}).get("monitor_measured_on")
+    )
 
 
 def _calibrated_path(cfg: BenchmarkConfig, network: str, seed: int) -> Path | None:
