@@ -5,6 +5,7 @@ from __future__ import annotations
 import json
 from pathlib import Path
 
+import numpy as np
 import pytest
 import torch
 from lerobot.configs.default import DatasetConfig
@@ -567,6 +568,39 @@ def test_every_scores_auroc_reads_the_occluders_own_steps_and_counts_an_unknown_
     }
     every = benchmark_report.score_aurocs(cells)["low_map_score"]
     assert every == {"occlusion": 1.0, "black": 1.0}
+
+
+def test_each_traced_score_gets_its_own_offline_stop_and_only_the_one_that_rises_under_the_board_stops_it():
+    from lerobot_vib.sim.perturbations import CONDITIONS, draw_scene_episode
+
+    rng = np.random.default_rng(0)
+    seeds = list(range(600000, 600020))
+    windows = [draw_scene_episode(CONDITIONS["occlusion"], s).occluded_steps for s in seeds]
+
+    def clean() -> list[list[float]]:
+        return (1.0 + 0.05 * rng.random((len(seeds), 100))).tolist()
+
+    occluded = [[3.0 if t in w else 1.0 for t in range(100)] for w in windows]
+    cells = {
+        "normal": {"seeds": seeds, "u": clean(), "scores": {"rises": clean(), "blind": clean()}},
+        "occlusion": {"seeds": seeds, "u": clean(), "scores": {"rises": occluded, "blind": clean()}},
+    }
+    calibration = {"u": clean(), "scores": {"rises": clean(), "blind": clean()}}
+    stops = benchmark_report.score_stops(cells, calibration, alpha=0.1)
+    entered = sum(w.start < 100 for w in windows)
+    assert stops["rises"]["conformal"]["in_time"] == stops["rises"]["conformal"]["occlusion_stops"] == entered
+    assert stops["rises"]["conformal"]["delays"] == [0] * entered
+    assert stops["blind"]["conformal"]["in_time"] == 0
+    assert set(stops["rises"]) == {"conformal", "band"}  # 20 rollouts: enough for the band at alpha 0.1
+    lines = benchmark_report.score_stop_table({"vib_tokens": {"1000": {"score_stops": stops}}}, 0.1)
+    assert any("| rises | conformal |" in line for line in lines)
+
+
+def test_a_score_that_is_zero_at_some_step_has_no_band_and_says_so():
+    calibration = {"u": [[0.0, 1.0, 1.0]] * 40}
+    gammas = benchmark_report.thresholds(calibration, None, 0.1)
+    assert gammas["band"] is None and gammas["conformal"] == 1.0
+    assert any("no band" in note for note in gammas["notes"])
 
 
 def test_the_shipped_checkpoint_stops_as_the_report_measured_and_its_card_says_what_it_predicted(

@@ -1,7 +1,7 @@
 """VIBPolicy: ACT-style action chunking through a Variational Information Bottleneck (paper Sec. III-D).
 
 The policy plumbs; a network does the learning. Two networks, each in its own module, offer the same calls
-(`encode` -> posterior, `rate`, `decode` -> action chunk, `forward`):
+(`encode` -> posterior, `rate`, `decode` -> action chunk, `observe` -> the scores of scores.py, `forward`):
 
     pooled (default)  pooled_network.py: the paper's Fig. 2, pooled camera features summed with the state
                       and cut into K state tokens, one Gaussian posterior per token
@@ -10,8 +10,9 @@ The policy plumbs; a network does the learning. Two networks, each in its own mo
     loss:             L1(actions, non-padded steps) + beta * mean(R),   R the mean of the tokens' rates
 
 Around the network the policy keeps what acting needs: the rate's running mean and the calibration (u = R /
-R_bar), the scores of scores.py, temporal ensembling (runtime.py, ensembling.py) and the safety stop
-(stop.py reads u for it, safety.py decides).
+R_bar), the scores' fitted parts, temporal ensembling (runtime.py, ensembling.py) and the safety stop
+(stop.py reads u for it, safety.py decides). readiness.py says whether a checkpoint can act on u,
+model_card.py what its card says.
 """
 
 from __future__ import annotations
@@ -19,13 +20,12 @@ from __future__ import annotations
 import logging
 import math
 import re
-from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
 import torch
 import torch.nn.functional as F
-from huggingface_hub import EvalResult, ModelCard
+from huggingface_hub import ModelCard
 from lerobot.policies.pretrained import PreTrainedPolicy
 from lerobot.utils.constants import ACTION, OBS_ENV_STATE, OBS_STATE
 from safetensors import SafetensorError
@@ -33,70 +33,21 @@ from torch import Tensor
 
 from .backbone import skip_pretrained_backbone
 from .bottleneck import Posterior
-from .calibration import RateTracker, describe_calibration, measured_success, stop_threshold, threshold_source
+from .calibration import RateTracker, stop_threshold, threshold_source
 from .configuration_vib import VIBConfig, VIBConfigError
 from .ema import make_ema
 from .inputs import check_observation, check_training_batch
-from .pooled_network import EncoderParts, PooledNetwork
+from .model_card import vib_model_card
+from .pooled_network import PooledNetwork
 from .processor_vib import vib_dataset_stats
+from .readiness import check_ready_to_act_on_u, episode_score
 from .runtime import ChunkRuntime
 from .safety import PolicySafetyAction, RobotUnits
-from .scores import MAP_SCORES, ChunkDisagreement, EmbeddingRND, token_scores
-from .stop import PolicyStop
+from .scores import ChunkDisagreement, EmbeddingRND
+from .stop import PolicyStop, UncertaintyStep
 from .token_network import TokenNetwork
 
 logger = logging.getLogger(__name__)
-
-MODEL_CARD_INTRO = """\
-**VIB** (Variational Information Bottleneck) is an ACT-style action-chunking policy whose observation \
-encoding passes through an Information Bottleneck; its *rate*, KL(p(z|s) || m(z)), is an epistemic-uncertainty \
-score available at run time (Uncertainty-Guided Robotic Manipulation Through Variational Information \
-Bottleneck in Imitation Learning, VIB-ILCtrl).
-
-The policy type comes from the LeRobot plugin `lerobot_policy_vib` (the lerobot-vib project), which is not on \
-PyPI: install it from its source next to LeRobot (`pip install -e .` in a checkout of lerobot-vib) before \
-`lerobot-eval` / `lerobot-rollout` / `--policy.path=...` can load it."""
-
-# LeRobot's card template says this until someone fills its table in.
-NO_EVALUATION = "_No evaluation results have been provided for this policy yet._"
-
-
-@dataclass
-class UncertaintyStep:
-    """What `select_action` measured and decided at one step, per batch element."""
-
-    rate: Tensor  # (B,) R of this step's observation
-    u: Tensor  # (B,) R / R_bar
-    gamma: float  # the stop threshold on u (reported even when the threshold stop is disabled)
-    threshold_active: bool  # whether u > gamma stops the policy (`safety.enabled`)
-    stopped: Tensor  # (B,) bool: the safety action was emitted
-    just_stopped: Tensor  # (B,) bool: RUN -> STOP at this step
-    resumed: Tensor  # (B,) bool: STOP -> RUN at this step
-    halted: Tensor | None = None  # (B,) bool: the stop is terminal; only `policy.resume()` ends it
-    score: str = "rate"  # the score u was read from (`VIBConfig.uncertainty_score`)
-    scores: dict[str, Tensor] | None = None  # (B,) raw value of every score computed at this step, by name
-    rate_map: Tensor | None = None  # (B, cameras, H', W') the image tokens' rates (token network only)
-    # (B,) each env's threshold, where a time band is read at each env's progress (`gamma` is env 0's)
-    thresholds: Tensor | None = None
-    # (B,) what the stop compared with the threshold: u over the calibrated window (`calibration.window`; u
-    # itself when it is 1)
-    stop_value: Tensor | None = None
-    # (B, D) the observation embedding "embedding_rnd" reads, kept while every score is traced
-    # (`trace_all_scores`): an RND can then be fitted on rollouts as well as on the training frames
-    embedding: Tensor | None = None
-
-    def row(self, i: int = 0) -> dict[str, float | bool]:
-        """Batch element i as plain numbers (for traces)."""
-        return {
-            "rate": float(self.rate[i]),
-            "u": float(self.u[i]),
-            "gamma": self.gamma,
-            "stopped": bool(self.stopped[i]),
-            "just_stopped": bool(self.just_stopped[i]),
-            "resumed": bool(self.resumed[i]),
-            "halted": bool(self.halted[i]) if self.halted is not None else False,
-        }
-
 
 # torch's report of a tensor whose shape differs between a file and the network it is loaded into.
 SIZE_MISMATCH = re.compile(
@@ -161,51 +112,8 @@ class VIBPolicy(PreTrainedPolicy):
         with skip_pretrained_backbone():
             policy = super().from_pretrained(pretrained_name_or_path, **kwargs)
         if policy.config.safety.enabled or policy.config.temporal_ensemble == "uncertainty":
-            policy.check_ready_to_act_on_u(str(pretrained_name_or_path))
+            check_ready_to_act_on_u(policy, str(pretrained_name_or_path))
         return policy
-
-    def check_ready_to_act_on_u(self, source: str = "This checkpoint") -> None:
-        """Refuse, when the policy loads and not at a robot's first step, a stop or Eq. 6 that could not work:
-        no R_bar, a score whose statistics were never calibrated, no finite gamma, or a resume threshold above it."""
-        problems = []
-        r_bar = self.rate_mean()
-        if not (math.isfinite(r_bar) and r_bar > 0):
-            problems.append("it has no rate statistics (R_bar)")
-        score = self.config.uncertainty_score
-        if missing := self._missing_score_parts(score):
-            problems.append(f"`uncertainty_score={score}` needs {' and '.join(missing)}")
-        if problems:
-            raise VIBConfigError(
-                f"{source} cannot act on u ({'; '.join(problems)}): run `lerobot-vib-calibrate "
-                "--policy.path=<checkpoint> --dataset.repo_id=<its training data>` and load the calibrated "
-                "checkpoint, or turn off what reads u (`--policy.safety.enabled=false`, "
-                "`--policy.temporal_ensemble=act`)."
-            )
-        if not self.config.safety.enabled:
-            return
-        gamma = self.stop_threshold(step=0)
-        if not math.isfinite(gamma):
-            raise VIBConfigError(f"{source}: the safety stop is enabled but its threshold gamma is unknown.")
-        resume = self.config.safety.resume_threshold
-        if resume is not None and not self.config.calibration.gamma_band and resume > gamma:
-            raise VIBConfigError(
-                f"{source}: `safety.resume_threshold` ({resume}) must not exceed gamma ({gamma:.4g}): a u between "
-                "them would resume and stop again at once."
-            )
-
-    def _missing_score_parts(self, score: str) -> list[str]:
-        """What `score` needs that this checkpoint lacks (filled by lerobot-vib-calibrate)."""
-        missing = []
-        if score != "rate" and not math.isfinite(self.score_mean(score)):
-            missing.append("its mean over the training frames")
-        if self.config.encoder == "tokens":
-            if score in MAP_SCORES and not torch.isfinite(self.map_cell_mean).all():
-                missing.append("each image cell's rate statistics")
-        elif score in ("image_rate", "low_image_rate") and not torch.isfinite(self.state_embedding_mean).all():
-            missing.append("the state path's training mean")
-        if score == "embedding_rnd" and not self.embedding_rnd.fitted:
-            missing.append("a fitted RND")
-        return missing
 
     @classmethod
     def _load_as_safetensor(cls, model: VIBPolicy, model_file: str, map_location: str, strict: bool) -> VIBPolicy:
@@ -229,36 +137,11 @@ class VIBPolicy(PreTrainedPolicy):
             ) from None
 
     def generate_model_card(self, *args: Any, **kwargs: Any) -> ModelCard:
-        """LeRobot's card, with what the policy is, the plugin it needs to load, and its uncertainty: the data,
-        the score, R_bar, gamma and how it was set, and the success measured where gamma was set."""
+        """LeRobot's card with what the policy is, the plugin it needs and its uncertainty (model_card.py)."""
         card = super().generate_model_card(*args, **kwargs)
-        generic = f"This is a **{self.name}** policy trained with [LeRobot](https://github.com/huggingface/lerobot)."
-        if generic in card.text:
-            card.text = card.text.replace(generic, MODEL_CARD_INTRO)
-        else:
-            card.text = MODEL_CARD_INTRO + "\n\n" + card.text
-        card.data.tags = sorted(set(card.data.tags or []) | {"vib", "uncertainty"})
-        dataset = kwargs.get("dataset_repo_id", args[0] if args else None)
-        measured = measured_success(self.config.calibration)
-        if measured is not None:  # LeRobot's table, and the Hub's evaluation results, from what was measured
-            trials, successes, where = measured
-            table = (
-                "| Task | Trials | Successes | Success rate |\n| ---- | ------ | --------- | ------------ |\n"
-                f"| {where} | {trials} | {successes} | {100 * successes / trials:.0f}% |"
-            )
-            card.text = card.text.replace(NO_EVALUATION, table)
-            card.data.model_name = card.data.model_name or self.config.repo_id or "vib"
-            card.data.eval_results = [
-                EvalResult(
-                    task_type="robotics",
-                    dataset_type=dataset or self.config.calibration.dataset_repo_id or "unknown",
-                    dataset_name=where,
-                    metric_type="success_rate",
-                    metric_value=round(successes / trials, 4),
-                )
-            ]
-        card.text = card.text.rstrip("\n") + "\n\n" + describe_calibration(self.config, self.rate_mean(), dataset)
-        return card
+        return vib_model_card(
+            card, self.config, self.rate_mean(), kwargs.get("dataset_repo_id", args[0] if args else None)
+        )
 
     def get_optim_params(self) -> list[dict]:
         backbone, rest = [], []
@@ -316,27 +199,7 @@ class VIBPolicy(PreTrainedPolicy):
         return stop_threshold(self.config, self.rate_tracker, self._episode_step if step is None else step)
 
     def _start_episode(self) -> None:
-        r_bar = self.rate_mean()
-        if not (math.isfinite(r_bar) and r_bar > 0):
-            raise RuntimeError(
-                "This VIB policy has no rate statistics (R_bar), so its uncertainty u = R / R_bar is unknown and "
-                "every step would be a safety stop. Train it with lerobot-train (which keeps running statistics) "
-                "or run `lerobot-vib-calibrate` on its training data."
-            )
-        score = self.config.uncertainty_score
-        missing = self._missing_score_parts(score)
-        self._active_score = score
-        if missing:
-            message = (
-                f"`uncertainty_score={score}` needs {' and '.join(missing)}, which this checkpoint lacks: run "
-                "`lerobot-vib-calibrate --policy.path=<checkpoint> --dataset.repo_id=<its training data>` (it "
-                "computes every score's statistics and fits the RND), or use `--policy.uncertainty_score=rate`."
-            )
-            if self.config.safety.enabled or self.config.temporal_ensemble == "uncertainty":
-                raise RuntimeError(message)
-            # Nothing acts on u: trace the paper's rate, which training already normalizes, rather than refuse.
-            logger.warning("%s Until then u is the rate's.", message)
-            self._active_score = "rate"
+        self._active_score = episode_score(self)
         monitor = self.stop.start(self._active_score, self.robot_units, announce=not self._threshold_announced)
         self._threshold_announced |= self.config.safety.enabled  # once per policy, not once per episode
         self.runtime.reset(monitor)
@@ -472,51 +335,20 @@ class VIBPolicy(PreTrainedPolicy):
         posterior = network.encode(batch)
         return posterior, network.rate(posterior)
 
-    def rnd_embedding(self, parts: EncoderParts, batch: dict[str, Tensor]) -> Tensor:
-        """The embedding that "embedding_rnd" reads (`config.rnd_input`)."""
-        if self.config.rnd_input == "fused":
-            return parts.fused
-        pieces = [p for p in (parts.pooled, batch.get(OBS_STATE) if self.config.robot_state_feature else None)]
-        return torch.cat([p for p in pieces if p is not None], dim=1)
-
     def observation_scores(
         self, batch: dict[str, Tensor], wanted: str | None = None
     ) -> tuple[Posterior, dict[str, Tensor]]:
         """One encoder pass: the posterior and the raw value (B,) of every observation score that is fitted
-        ("rate" always; the image path's and RND once calibrated), or with `wanted` only that one beside the
-        rate (the per-step cost of `select_action`). `scores.py` defines them. The token network also leaves
-        its rate map, (B, cameras, H', W'), for `last_step.rate_map`."""
-        network = self.network
+        ("rate" always), or with `wanted` only that one beside the rate (the per-step cost of `select_action`).
+        The network computes them (its `observe`) from the fitted parts this policy keeps; the token network
+        also leaves its rate map for `last_step.rate_map`."""
+        keep = self.trace_all_scores
         if self.config.encoder == "tokens":
-            posterior = network.encode(batch)
-            token_rates = network.token_rates(posterior)
-            self._rate_map = network.rate_map(token_rates)
-            cell_mean, cell_std = self.map_cell_mean, self.map_cell_std
-            scores = token_scores(token_rates, network.n_1d_tokens, cell_mean, cell_std, self.config.map_top_k)
-            rnd_wanted = self.embedding_rnd.fitted and wanted in (None, "embedding_rnd")
-            embedding = network.embedding(posterior) if rnd_wanted or self.trace_all_scores else None
-            self._embedding = embedding if self.trace_all_scores else None
-            if rnd_wanted:
-                scores["embedding_rnd"] = self.embedding_rnd.error(embedding)
-            return posterior, scores
-        self._rate_map = None
-        parts = network.encoder.parts(batch)
-        posterior = network.posterior_of(parts.fused)
-        scores = {"rate": network.bottleneck.rate(posterior)}
-        if parts.image is not None and wanted in (None, "image_rate", "low_image_rate"):
-            if parts.state is None:
-                scores["image_rate"] = scores["rate"]
-            elif torch.isfinite(self.state_embedding_mean).all():
-                held = parts.image + self.state_embedding_mean.to(parts.image)
-                scores["image_rate"] = network.bottleneck.rate(network.posterior_of(held))
-        if "image_rate" in scores:
-            scores["low_image_rate"] = 1.0 / scores["image_rate"]
-        rnd_wanted = self.embedding_rnd.fitted and wanted in (None, "embedding_rnd")
-        embedding = self.rnd_embedding(parts, batch) if rnd_wanted or self.trace_all_scores else None
-        self._embedding = embedding if self.trace_all_scores else None
-        if rnd_wanted:
-            scores["embedding_rnd"] = self.embedding_rnd.error(embedding)
-        return posterior, scores
+            seen = self.network.observe(batch, self.map_cell_mean, self.map_cell_std, self.embedding_rnd, wanted, keep)
+        else:
+            seen = self.network.observe(batch, self.state_embedding_mean, self.embedding_rnd, wanted, keep)
+        self._rate_map, self._embedding = seen.rate_map, seen.embedding
+        return seen.posterior, seen.scores
 
     def _safety_action(self, batch: dict[str, Tensor], batch_size: int, last_command: Tensor | None) -> Tensor:
         """What a stopped env emits, in the policy's normalized space (safety.py's `PolicySafetyAction`)."""

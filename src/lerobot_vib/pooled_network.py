@@ -27,6 +27,7 @@ from torch import Tensor, nn
 from .backbone import build_encoder_trunk
 from .bottleneck import GaussianBottleneck, Posterior, VIBOutput
 from .configuration_vib import VIBConfig
+from .scores import EmbeddingRND, Observation
 
 
 def _mlp(in_dim: int, hidden_dim: int, out_dim: int) -> nn.Sequential:
@@ -183,6 +184,41 @@ class PooledNetwork(nn.Module):
 
     def decode(self, z: Tensor) -> Tensor:
         return self.decoder(z)
+
+    def rnd_embedding(self, parts: EncoderParts, batch: dict[str, Tensor]) -> Tensor:
+        """The embedding that "embedding_rnd" reads (`config.rnd_input`)."""
+        if self.config.rnd_input == "fused":
+            return parts.fused
+        pieces = [p for p in (parts.pooled, batch.get(OBS_STATE) if self.config.robot_state_feature else None)]
+        return torch.cat([p for p in pieces if p is not None], dim=1)
+
+    def observe(
+        self,
+        batch: dict[str, Tensor],
+        state_embedding_mean: Tensor,
+        rnd: EmbeddingRND,
+        wanted: str | None = None,
+        keep_embedding: bool = False,
+    ) -> Observation:
+        """One encoder pass and the scores of scores.py: every fitted one, or with `wanted` that one beside the
+        rate. The image path's scores read `state_embedding_mean`, the state path's training mean (NaN until
+        calibrated); the RND is read only when it is fitted and wanted."""
+        parts = self.encoder.parts(batch)
+        posterior = self.posterior_of(parts.fused)
+        scores = {"rate": self.bottleneck.rate(posterior)}
+        if parts.image is not None and wanted in (None, "image_rate", "low_image_rate"):
+            if parts.state is None:
+                scores["image_rate"] = scores["rate"]
+            elif torch.isfinite(state_embedding_mean).all():
+                held = parts.image + state_embedding_mean.to(parts.image)
+                scores["image_rate"] = self.bottleneck.rate(self.posterior_of(held))
+        if "image_rate" in scores:
+            scores["low_image_rate"] = 1.0 / scores["image_rate"]
+        rnd_wanted = rnd.fitted and wanted in (None, "embedding_rnd")
+        embedding = self.rnd_embedding(parts, batch) if rnd_wanted or keep_embedding else None
+        if rnd_wanted:
+            scores["embedding_rnd"] = rnd.error(embedding)
+        return Observation(posterior, scores, None, embedding if keep_embedding else None)
 
     def forward(self, batch: dict[str, Tensor], sample: bool) -> VIBOutput:
         posterior = self.encode(batch)

@@ -30,6 +30,7 @@ from __future__ import annotations
 
 import math
 from collections.abc import Iterable
+from dataclasses import dataclass
 
 import torch
 from torch import Tensor, nn
@@ -46,6 +47,16 @@ TOKEN_SCORES = ("state_rate", "map_score", "low_map_score")
 # Scores that read the rate map's per-cell training statistics (calibration).
 MAP_SCORES = ("map_score", "low_map_score")
 RND_INPUTS = ("fused", "pooled")
+
+
+@dataclass
+class Observation:
+    """What one encoder pass tells about an observation: each network's `observe` returns it."""
+
+    posterior: Posterior
+    scores: dict[str, Tensor]  # (B,) raw value of every score computed, by name ("rate" always)
+    rate_map: Tensor | None = None  # (B, cameras, H', W') the image cells' rates (token network only)
+    embedding: Tensor | None = None  # (B, D) what "embedding_rnd" reads, when asked to keep it
 
 
 def map_score(cell_rates: Tensor, cell_mean: Tensor, cell_std: Tensor, top_k: int = 1) -> Tensor:

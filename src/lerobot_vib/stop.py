@@ -24,6 +24,7 @@ from __future__ import annotations
 import logging
 import math
 from collections.abc import Callable
+from dataclasses import dataclass
 from typing import Any
 
 import torch
@@ -34,6 +35,43 @@ from .calibration import threshold_source
 from .safety import RobotUnits, SafetyMonitor
 
 logger = logging.getLogger(__name__)
+
+
+@dataclass
+class UncertaintyStep:
+    """What `select_action` measured and decided at one step, per batch element."""
+
+    rate: Tensor  # (B,) R of this step's observation
+    u: Tensor  # (B,) R / R_bar
+    gamma: float  # the stop threshold on u (reported even when the threshold stop is disabled)
+    threshold_active: bool  # whether u > gamma stops the policy (`safety.enabled`)
+    stopped: Tensor  # (B,) bool: the safety action was emitted
+    just_stopped: Tensor  # (B,) bool: RUN -> STOP at this step
+    resumed: Tensor  # (B,) bool: STOP -> RUN at this step
+    halted: Tensor | None = None  # (B,) bool: the stop is terminal; only `policy.resume()` ends it
+    score: str = "rate"  # the score u was read from (`VIBConfig.uncertainty_score`)
+    scores: dict[str, Tensor] | None = None  # (B,) raw value of every score computed at this step, by name
+    rate_map: Tensor | None = None  # (B, cameras, H', W') the image tokens' rates (token network only)
+    # (B,) each env's threshold, where a time band is read at each env's progress (`gamma` is env 0's)
+    thresholds: Tensor | None = None
+    # (B,) what the stop compared with the threshold: u over the calibrated window (`calibration.window`; u
+    # itself when it is 1)
+    stop_value: Tensor | None = None
+    # (B, D) the observation embedding "embedding_rnd" reads, kept while every score is traced
+    # (`trace_all_scores`): an RND can then be fitted on rollouts as well as on the training frames
+    embedding: Tensor | None = None
+
+    def row(self, i: int = 0) -> dict[str, float | bool]:
+        """Batch element i as plain numbers (for traces)."""
+        return {
+            "rate": float(self.rate[i]),
+            "u": float(self.u[i]),
+            "gamma": self.gamma,
+            "stopped": bool(self.stopped[i]),
+            "just_stopped": bool(self.just_stopped[i]),
+            "resumed": bool(self.resumed[i]),
+            "halted": bool(self.halted[i]) if self.halted is not None else False,
+        }
 
 
 class PolicyStop:

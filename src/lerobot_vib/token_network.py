@@ -33,6 +33,7 @@ from torch import Tensor, nn
 
 from .backbone import build_encoder_trunk
 from .bottleneck import GaussianBottleneck, Posterior, VIBOutput
+from .scores import EmbeddingRND, Observation, token_scores
 
 
 class TokenNetwork(nn.Module):
@@ -156,6 +157,27 @@ class TokenNetwork(nn.Module):
     @property
     def embedding_dim(self) -> int:
         return (self.n_1d_tokens + (1 if self.camera_keys else 0)) * self.config.latent_dim
+
+    def observe(
+        self,
+        batch: dict[str, Tensor],
+        cell_mean: Tensor,
+        cell_std: Tensor,
+        rnd: EmbeddingRND,
+        wanted: str | None = None,
+        keep_embedding: bool = False,
+    ) -> Observation:
+        """One encoder pass and the scores of scores.py: every fitted one, or with `wanted` that one beside
+        the token rates' (the RND only when it is fitted and wanted). `cell_mean` / `cell_std`: the cells'
+        training statistics of the map scores (NaN until calibrated)."""
+        posterior = self.encode(batch)
+        token_rates = self.token_rates(posterior)
+        scores = token_scores(token_rates, self.n_1d_tokens, cell_mean, cell_std, self.config.map_top_k)
+        rnd_wanted = rnd.fitted and wanted in (None, "embedding_rnd")
+        embedding = self.embedding(posterior) if rnd_wanted or keep_embedding else None
+        if rnd_wanted:
+            scores["embedding_rnd"] = rnd.error(embedding)
+        return Observation(posterior, scores, self.rate_map(token_rates), embedding if keep_embedding else None)
 
     # ------------------------------------------------------------------------------------------ decoder
 

@@ -56,10 +56,11 @@ from lerobot.policies.act.modeling_act import ACTPolicy
 from lerobot.policies.pretrained import PreTrainedPolicy
 from torch import Tensor
 
-from .modeling_vib import UncertaintyStep, VIBPolicy
+from .modeling_vib import VIBPolicy
 from .rnd import RND
 from .runtime import ChunkRuntime
 from .safety import SafetyAction, SafetyMonitor
+from .stop import UncertaintyStep
 
 ENSEMBLE_COEFF = 0.01  # ACT's default m, for every ensembling row of Table I
 

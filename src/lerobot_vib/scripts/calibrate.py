@@ -372,7 +372,7 @@ def record_frames(policy: VIBPolicy, preprocessor, batches) -> FrameRecords:
         keep["rate"].append(rate.double().cpu())
         keep["image"].append(None if parts.image is None else parts.image.cpu())
         keep["state"].append(None if parts.state is None else parts.state.cpu())
-        keep["rnd"].append((network.embedding(posterior) if tokens else policy.rnd_embedding(parts, obs)).cpu())
+        keep["rnd"].append((network.embedding(posterior) if tokens else network.rnd_embedding(parts, obs)).cpu())
         keep["chunk"].append(network.decode(posterior.mean).cpu())
         keep["token_rates"].append(None if token_rates is None else token_rates.cpu())
     if not keep["rate"]:
