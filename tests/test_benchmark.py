@@ -596,6 +596,25 @@ def test_each_traced_score_gets_its_own_offline_stop_and_only_the_one_that_rises
     assert any("| rises | conformal |" in line for line in lines)
 
 
+def test_the_score_is_chosen_on_validation_and_one_that_stops_clean_rollouts_too_often_is_passed_over():
+    from lerobot_vib.sim.perturbations import CONDITIONS, draw_scene_episode
+
+    rng = np.random.default_rng(1)
+    clean_seeds, occluded_seeds = list(range(400000, 400040)), list(range(400000, 400020))
+    windows = [draw_scene_episode(CONDITIONS["occlusion"], s).occluded_steps for s in occluded_seeds]
+    quiet = (1.0 + 0.05 * rng.random((40, 100))).tolist()
+    # "jumpy" catches every occlusion but its clean rollouts in the judged half spike above anything it was set on
+    jumpy = [[5.0 if i >= 20 and i % 3 == 0 and t == 50 else x for t, x in enumerate(row)] for i, row in
+             enumerate(quiet)]  # fmt: skip
+    board = [[3.0 if t in w else 1.0 for t in range(100)] for w in windows]
+    late = [[3.0 if t in w and t >= w.start + 8 else 1.0 for t in range(100)] for w in windows]  # never in time
+    calibration = {"seeds": clean_seeds, "u": quiet, "scores": {"jumpy": jumpy, "steady": quiet}}
+    occluded = {"seeds": occluded_seeds, "u": board, "scores": {"jumpy": board, "steady": late}}
+    choice = benchmark_report.choose_score_on_validation(calibration, occluded, alpha=0.1)
+    assert choice["score"] == "steady" and (choice["n_set"], choice["n_judged"]) == (20, 20)
+    assert benchmark_report.choose_score_on_validation(calibration, None, alpha=0.1) is None
+
+
 def test_a_score_that_is_zero_at_some_step_has_no_band_and_says_so():
     calibration = {"u": [[0.0, 1.0, 1.0]] * 40}
     gammas = benchmark_report.thresholds(calibration, None, 0.1)

@@ -328,9 +328,11 @@ def write_report(cfg, cells: dict, wall_s: float, planned: int) -> dict:
             if calibration is None or not by_condition:
                 continue
             gamma = scores.get(seed, {}).get(score, {}).get("mean_2std")
-            results["uncertainty"].setdefault(v, {})[str(seed)] = uncertainty(
+            u = results["uncertainty"].setdefault(v, {})[str(seed)] = uncertainty(
                 by_condition, calibration, v, cfg.conditions, gamma, cfg.alpha
             )
+            occluded = cells.get((v, failure_report.PERTURBED + "occlusion", seed, None))
+            u["score_choice"] = choose_score_on_validation(calibration, occluded, cfg.alpha)
             if every := score_aurocs(by_condition):
                 results.setdefault("score_aurocs", {}).setdefault(v, {})[str(seed)] = every
     results["failure_prediction"] = failure_report.failure_prediction(
@@ -555,6 +557,46 @@ def _markdown(cfg, results: dict, plots: list[str]) -> str:
     return "\n".join(lines) + "\n"
 
 
+def _episodes(cell: dict, part: slice) -> dict:
+    """The episodes `part` of a saved cell (its per-episode lists cut alike)."""
+    n = len(cell["seeds"])
+    out = {k: v[part] if isinstance(v, list) and len(v) == n else v for k, v in cell.items()}
+    out["scores"] = {name: traces[part] for name, traces in cell.get("scores", {}).items()}
+    return out
+
+
+def choose_score_on_validation(
+    calibration: dict, occluded: dict | None, alpha: float, max_false: float = 0.1
+) -> dict | None:
+    """The rule that chose the policy's default score (docs/uncertainty.md), on validation rollouts alone: each
+    (score, threshold) pair set on the first half of the clean validation rollouts and judged on the other half
+    and on the occluded validation rollouts; among the pairs that stop at most `max_false` of those clean
+    rollouts, the one that stops the most occlusions in time (ties: fewer clean stops, then the order traced).
+    None without occluded validation rollouts."""
+    if occluded is None or not calibration.get("scores"):
+        return None
+    half = len(calibration["seeds"]) // 2
+    judged = {"normal": _episodes(calibration, slice(half, None)), "occlusion": occluded}
+    candidates = score_stops(judged, _episodes(calibration, slice(None, half)), alpha)
+    best = None
+    for order, (score, by_threshold) in enumerate(candidates.items()):
+        for name, row in by_threshold.items():
+            false = row["false_stops"] / max(row["clean_episodes"], 1)
+            if false > max_false or "occlusion_episodes" not in row:
+                continue
+            key = (row["in_time"], -row["false_stops"], -order)
+            if best is None or key > best[0]:
+                best = (key, score, name, row)
+    return {
+        "score": best[1] if best else None,
+        "threshold": best[2] if best else None,
+        "row": best[3] if best else None,
+        "n_set": half,
+        "n_judged": len(calibration["seeds"]) - half,
+        "n_occluded": len(occluded["seeds"]),
+    }
+
+
 def score_stop_table(uncertainty: dict, alpha: float) -> list[str]:
     """The offline stop of every traced score (`score_stops`), and the default score's band against the
     targets: at least 90% of occlusions stopped within STOP_WITHIN steps, at most 5% of clean rollouts."""
@@ -603,6 +645,34 @@ def score_stop_table(uncertainty: dict, alpha: float) -> list[str]:
     if verdicts:
         lines += ["", f"Target (`{DEFAULT_SCORE}`, band): at least 90% of occlusions in time, at most 5% of clean "
                   "rollouts stopped. " + "; ".join(verdicts) + "."]  # fmt: skip
+    chosen = [(v, seed, u["score_choice"]) for v, by_seed in uncertainty.items() for seed, u in by_seed.items()
+              if u.get("score_choice")]  # fmt: skip
+    if chosen:
+        lines += [
+            "",
+            "The default score's rule on validation rollouts alone (each pair set on half of the clean validation "
+            "rollouts, judged on the other half and the occluded validation rollouts; the most occlusions in time "
+            "among the pairs that stop at most 10% of those clean rollouts), and what that pair does on the test "
+            "seeds above:",
+            "",
+        ]
+        for v, seed, c in chosen:
+            if c["score"] is None:
+                lines.append(f"- {VARIANTS[v].label}, {seed}: no pair stops at most 10% of the clean rollouts.")
+                continue
+            row = c["row"]
+            test = uncertainty[v][seed]["score_stops"].get(c["score"], {}).get(c["threshold"])
+            on_test = (
+                f"on test {_pct(test['in_time'], test['occlusion_episodes'])} of occlusions in time, "
+                f"{_pct(test['false_stops'], test['clean_episodes'])} clean stopped"
+                if test and "occlusion_episodes" in test
+                else "not on test"
+            )
+            lines.append(
+                f"- {VARIANTS[v].label}, {seed}: `{c['score']}` with its {c['threshold']} (set on {c['n_set']}, "
+                f"judged on {c['n_judged']} clean: {_pct(row['false_stops'], row['clean_episodes'])} stopped, "
+                f"{_pct(row['in_time'], row['occlusion_episodes'])} of occlusions in time); {on_test}."
+            )
     return lines
 
 
