@@ -199,6 +199,22 @@ def test_the_report_ships_the_validation_choice_and_states_its_test_numbers_in_o
     assert failure_report.plot({"vib_tokens": result}, tmp_path, {}) == ["failure_roc.png"]
 
 
+def test_the_earliest_monitor_is_taken_only_among_those_meeting_the_tpr_and_tnr_targets_on_validation():
+    from lerobot_vib.scripts.failure_report import earliest_meeting_targets
+
+    def row(name: str, tpr: float, tnr: float, detection: float, order: int) -> dict:
+        return {"monitor": Monitor((name,)), "tpr": tpr, "tnr": tnr, "detection_time": detection,
+                "balanced_accuracy": (tpr + tnr) / 2, "order": order}  # fmt: skip
+
+    ranking = [
+        row("late", 0.98, 0.96, 0.80, 0),
+        row("early_but_noisy", 1.0, 0.74, 0.27, 1),
+        row("mid", 0.91, 0.9, 0.5, 2),
+    ]
+    assert earliest_meeting_targets(ranking) == Monitor(("mid",))
+    assert earliest_meeting_targets(ranking[1:2]) is None
+
+
 def test_an_rnd_fitted_on_clean_rollouts_sees_half_the_successes_and_reads_a_new_scene_higher(tmp_path):
     from safetensors.numpy import save_file
 

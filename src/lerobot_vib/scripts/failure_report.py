@@ -162,6 +162,20 @@ def _pool(metrics: list[FailureMetrics]) -> FailureMetrics:
     )
 
 
+EARLIEST = "the earliest on validation among those with TPR and TNR >= 0.9 there"
+
+
+def earliest_meeting_targets(ranking: list[dict]) -> Monitor | None:
+    """Of `choose_monitor`'s rows, the monitor that alarms earliest in failures among those meeting the TPR and
+    TNR targets on validation (ties: the better balanced accuracy, then the order listed); None if none meets
+    them. Balanced accuracy, which ships a monitor, does not ask when it alarms: this one says whether any
+    monitor could have met the detection-time target too."""
+    meets = [r for r in ranking if r["tpr"] >= TARGETS["tpr"] and r["tnr"] >= TARGETS["tnr"]]
+    if not meets:
+        return None
+    return min(meets, key=lambda r: (r["detection_time"], -r["balanced_accuracy"], r["order"]))["monitor"]
+
+
 def failure_prediction(cfg, cells: dict, runtime_of) -> dict:
     """results["failure_prediction"]: per scored row, the validation ranking, the shipped monitor and its test
     metrics. `runtime_of(variant, seed)`: the row's chosen run time at that training seed."""
@@ -206,6 +220,9 @@ def failure_prediction(cfg, cells: dict, runtime_of) -> dict:
         fiper = [r["monitor"] for r in ranking if set(r["monitor"].scores) == set(FIPER_PAIR)]
         if fiper:
             references["FIPER-like: embedding RND AND chunk disagreement, best on validation"] = fiper[0]
+        earliest = earliest_meeting_targets(ranking)
+        if earliest is not None and earliest != shipped:
+            references[EARLIEST] = earliest
         if ROLLOUT_RND in names:
             _, on_rollouts = choose_monitor([m for m in candidates if ROLLOUT_RND in m.scores], validation, cfg.alpha)
             if on_rollouts:
