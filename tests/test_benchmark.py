@@ -629,7 +629,7 @@ def test_the_shipped_checkpoint_stops_as_the_report_measured_and_its_card_says_w
     successful clean validation rollouts; its test TPR / TNR land in the calibration and the model card."""
     import numpy as np
 
-    from lerobot_vib.failure import Monitor, calibrate_monitor, evaluate
+    from lerobot_vib.failure import AnyOf, Monitor, calibrate_monitor, evaluate
     from lerobot_vib.modeling_vib import VIBPolicy
     from lerobot_vib.scripts.failure_report import cell_episodes
 
@@ -673,6 +673,17 @@ def test_the_shipped_checkpoint_stops_as_the_report_measured_and_its_card_says_w
     card = policy.generate_model_card("local/arm", "vib", None, None).text
     assert "As a failure predictor" in card and "TPR 1.00" in card
     assert benchmark.ship_checkpoints(cfg, cells, results) == [out]  # its own output is rewritten
+    # an OR ships the same way: its first member is the stop's own score, the others its OR partners
+    either = AnyOf((Monitor(("rate",), window=5), Monitor(("embedding_rnd",))))  # 20 successes: 19 at alpha / 2
+    or_results = {"failure_prediction": {"vib": {"shipped": {"monitor": either.as_dict()}}}}
+    assert benchmark.ship_checkpoints(cfg, cells, or_results) == [out]
+    c = VIBPolicy.from_pretrained(out).config.calibration
+    report = calibrate_monitor(either, cell_episodes(validation), 0.1)
+    assert c.gamma == pytest.approx(report.members[0].thresholds["rate"]) and c.window == 5
+    assert c.and_gammas == {} and c.or_window == 1
+    assert c.or_gammas == {"embedding_rnd": pytest.approx(report.members[1].thresholds["embedding_rnd"])}
+    assert c.monitor_metrics["tpr"] == evaluate(report, [e for x in tests.values() for e in cell_episodes(x)]).tpr
+    benchmark.ship_checkpoints(cfg, cells, results)
     (out / "config.json").write_text("{}")  # not a checkpoint it shipped: left alone, said so
     with pytest.raises(VIBConfigError, match="not a checkpoint this benchmark shipped"):
         benchmark.ship_checkpoints(cfg, cells, results)

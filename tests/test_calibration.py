@@ -338,6 +338,30 @@ def test_an_and_of_scores_gets_each_members_threshold_from_the_same_clean_rollou
         gamma_from_rollouts(dataset, info, 0.1, "r.json", threshold="max", traces=traces, and_traces={"rate": traces})
 
 
+def test_an_or_of_scores_sets_every_threshold_gammas_included_at_alpha_over_k():
+    from lerobot_vib.configuration_vib import CalibrationConfig
+    from lerobot_vib.failure import windowed
+    from lerobot_vib.scripts.calibrate import gamma_from_rollouts
+
+    rng = np.random.default_rng(3)
+    traces = [1 + 0.1 * rng.random(30) for _ in range(40)]
+    partner = [2 + rng.random(30) for _ in range(40)]
+    dataset = CalibrationConfig(dataset_repo_id="local/arm", n_frames=100, rate_mean=2.0, rate_std=0.5,
+                                score_means={"embedding_rnd": 4.0})  # fmt: skip
+    info = {**_rollouts([float(t.max()) for t in traces], 2.0), "score_means": {"rate": 2.0, "embedding_rnd": 4.0}}
+    either = gamma_from_rollouts(dataset, info, 0.1, "r.json", threshold="max", traces=traces,
+                                 or_traces={"embedding_rnd": partner}, or_window=5)  # fmt: skip
+    assert either.gamma == pytest.approx(conformal_gamma([t.max() for t in traces], 0.05))
+    expected = conformal_gamma([windowed(p, 5).max() for p in partner], 0.05)
+    assert either.or_gammas == {"embedding_rnd": pytest.approx(expected)} and either.or_window == 5
+    assert either.and_gammas == {}
+    with pytest.raises(VIBConfigError, match="AND and an OR"):
+        gamma_from_rollouts(dataset, info, 0.1, "r.json", threshold="max", traces=traces,
+                            or_traces={"embedding_rnd": partner}, and_traces={"embedding_rnd": partner})  # fmt: skip
+    with pytest.raises(VIBConfigError, match="both set"):
+        CalibrationConfig(and_gammas={"embedding_rnd": 2.0}, or_gammas={"state_rate": 2.0})
+
+
 def test_a_threshold_set_on_the_successful_rollouts_ignores_the_failures_and_their_traces():
     """As failure prediction calibrates (failure.py): a failing clean rollout's high u is not taken for normal."""
     from lerobot_vib.configuration_vib import CalibrationConfig

@@ -7,6 +7,7 @@ import numpy as np
 import pytest
 
 from lerobot_vib.failure import (
+    AnyOf,
     CalibrationError,
     Episode,
     Monitor,
@@ -14,6 +15,8 @@ from lerobot_vib.failure import (
     candidate_monitors,
     choose_monitor,
     evaluate,
+    monitor_from_dict,
+    or_candidates,
     windowed,
 )
 
@@ -102,6 +105,62 @@ def test_an_and_monitor_fires_only_where_both_scores_are_above_their_thresholds(
     both = Episode(False, {"a": np.r_[np.ones(30), np.full(20, 9.0)], "b": np.r_[np.ones(40), np.full(10, 9.0)]})
     assert calibrated.alarm(only_a) is None
     assert calibrated.alarm(both) == 40
+
+
+def test_an_or_monitor_fires_at_the_first_step_any_member_does_each_with_its_own_window():
+    calib = successes(20)
+    monitor = AnyOf((Monitor(("a",)), Monitor(("b",), window=5)))
+    calibrated = calibrate_monitor(monitor, calib, 0.1)
+    only_a = Episode(False, {"a": np.r_[np.ones(30), np.full(20, 9.0)], "b": np.ones(50)})
+    only_b = Episode(False, {"a": np.ones(50), "b": np.r_[np.ones(10), np.full(40, 9.0)]})
+    neither = Episode(False, {"a": np.ones(50), "b": np.ones(50)})
+    assert calibrated.alarm(only_a) == 30
+    assert calibrated.alarm(only_b) == 10  # b's 5-step mean crosses its threshold at once: 9 among ones
+    assert calibrated.alarm(neither) is None
+    b_alone = calibrate_monitor(Monitor(("b",), window=5), calib, 0.05)
+    assert calibrated.members[1].thresholds == b_alone.thresholds  # each member at alpha / k
+    assert monitor_from_dict(monitor.as_dict()) == monitor and monitor_from_dict(Monitor(("a",)).as_dict()).scores == (
+        "a",
+    )
+
+
+def test_an_or_of_k_members_each_at_alpha_over_k_alarms_a_successful_clean_episode_at_most_alpha_of_the_time():
+    alpha, alarms, trials = 0.2, 0, 300
+    rng = np.random.default_rng(2)
+    monitor = AnyOf((Monitor(("a",), 3), Monitor(("b",))))
+
+    def draw() -> Episode:
+        return Episode(True, {"a": 1 + rng.gamma(2.0, 0.1, 40), "b": 1 + rng.gamma(2.0, 0.1, 40)})
+
+    for _ in range(trials):
+        calibrated = calibrate_monitor(monitor, [draw() for _ in range(20)], alpha)
+        alarms += calibrated.alarm(draw()) is not None
+    assert alarms / trials <= alpha + 0.05
+
+
+def test_or_candidates_put_a_band_only_on_the_first_score_and_list_an_or_of_two_constants_once():
+    ors = or_candidates(["a", "b"], windows=(1, 5))
+    assert all(m.members[1].threshold == "constant" for m in ors)
+    constants = [frozenset(m.members) for m in ors if m.threshold == "constant"]
+    assert len(constants) == len(set(constants)) == 4  # {a@1, a@5} x {b@1, b@5}
+    assert sum(m.threshold == "band" for m in ors) == 8  # a or b first with a band, 2 x 2 windows each
+    with pytest.raises(ValueError, match="distinct scores"):
+        AnyOf((Monitor(("a",)), Monitor(("a",), 5)))
+
+
+def test_the_shipped_monitor_is_the_earliest_meeting_every_target_on_validation_else_the_best_balanced_one():
+    from lerobot_vib.scripts.failure_report import BEST_BALANCED, EARLIEST, ship_rule
+
+    def row(name: str, tpr: float, tnr: float, detection: float, benign: float | None) -> dict:
+        return {"monitor": Monitor((name,)), "tpr": tpr, "tnr": tnr, "detection_time": detection,
+                "balanced_accuracy": (tpr + tnr) / 2, "order": 0, "benign_stopped": benign}  # fmt: skip
+
+    late = row("late", 0.98, 0.96, 0.80, 0.0)
+    early_but_stops_noise = row("noisy", 0.95, 0.92, 0.10, 0.25)
+    early = row("early", 0.91, 0.93, 0.22, 0.05)
+    assert ship_rule([late, early_but_stops_noise, early]) == (Monitor(("early",)), EARLIEST)
+    assert ship_rule([late, early_but_stops_noise]) == (Monitor(("late",)), EARLIEST)
+    assert ship_rule([row("weak", 0.8, 0.8, 0.1, 0.0)]) == (Monitor(("weak",)), BEST_BALANCED)
 
 
 def test_lead_time_is_positive_when_the_alarm_comes_before_the_missed_grasp():

@@ -26,6 +26,24 @@ def test_an_and_stop_value_is_above_gamma_exactly_when_every_member_is_above_its
     torch.testing.assert_close(value, torch.minimum(u / 1.5, partner_u / 3.0) * 1.5)
 
 
+def test_an_or_stop_value_is_above_gamma_as_soon_as_any_member_is_above_its_own_threshold():
+    stop = stop_for(or_gammas={"embedding_rnd": 3.0})
+    u = torch.tensor([2.0, 2.0, 1.0, 1.0, 1.0])  # against gamma 1.5: above, above, below, below, below
+    partner_u = torch.tensor([4.0, 2.0, 4.0, 2.0, float("nan")])  # against 3.0: above, below, above, below, unknown
+    value = stop.value(u, {"embedding_rnd": 2.0 * partner_u}, 1.5)
+    assert (value[:4] > 1.5).tolist() == [True, True, True, False]
+    assert torch.isnan(value[4])  # an unknown member leaves the stop value unknown: the stop fires
+    torch.testing.assert_close(value[:4], torch.maximum(u / 1.5, partner_u / 3.0)[:4] * 1.5)
+    assert "OR embedding_rnd above 3" in stop.quantity()
+
+
+def test_an_or_partner_is_read_over_its_own_window():
+    stop = stop_for(or_gammas={"embedding_rnd": 3.0}, or_window=2)
+    raw = [2.0 * x for x in (2.0, 5.0, 5.0)]  # u 2, 5, 5: its 2-step mean 2, 3.5, 5
+    values = [float(stop.value(torch.tensor([0.1]), {"embedding_rnd": torch.tensor([r])}, 1.5)) for r in raw]
+    assert values == pytest.approx([2.0 / 3.0 * 1.5, 3.5 / 3.0 * 1.5, 5.0 / 3.0 * 1.5])
+
+
 def test_the_windowed_u_is_the_mean_of_the_last_w_steps_and_an_unknown_step_stays_unknown():
     stop = stop_for(window=3)
     values = [stop.windowed(torch.tensor([x]), "u") for x in (1.0, 3.0, 5.0, 7.0)]

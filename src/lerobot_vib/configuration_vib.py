@@ -188,6 +188,13 @@ class CalibrationConfig:
             stop reads one score. The stop compares gamma_t * min(m_t / gamma_t, m_k / gamma_k, ...) with gamma_t,
             which is above it exactly when every member is above its own threshold, and falls below the resume
             threshold when any member falls. Set by `lerobot-vib-calibrate --rollouts=... --and_scores=[...]`.
+        or_gammas: Other scores any of which, above its own constant threshold, also stops: {score: threshold},
+            each on its u's `window_aggregate` over `or_window` steps (an OR: a novel scene and an arm gone
+            astray show at different times, failure.AnyOf). The stop compares gamma_t * max(m_t / gamma_t,
+            m_k / gamma_k, ...) with gamma_t. Every member's threshold, gamma's included, is conformal at alpha / k
+            for k members, so that the OR stops a clean rollout with probability at most alpha. Set by
+            `lerobot-vib-calibrate --rollouts=... --or_scores=[...] --or_window=w`; not with `and_gammas`.
+        or_window: The window of the `or_gammas` scores, in steps (1: their u itself).
         monitor_metrics: What the stop, as calibrated here, measured as a failure predictor on rollouts that set
             nothing (failure.py): "tpr", "tnr", "detection_time", "median_lead_time", "n_failed", "n_succeeded",
             "alpha". Empty: not measured. `lerobot-vib-benchmark` writes it into the checkpoints it ships.
@@ -217,6 +224,8 @@ class CalibrationConfig:
     window: int = 1
     window_aggregate: str = "mean"
     and_gammas: dict[str, float] = field(default_factory=dict)
+    or_gammas: dict[str, float] = field(default_factory=dict)
+    or_window: int = 1
     monitor_metrics: dict[str, float] = field(default_factory=dict)
     monitor_measured_on: str | None = None
 
@@ -227,8 +236,21 @@ class CalibrationConfig:
                     f"`calibration.and_gammas` must map scores {SCORES} to positive finite thresholds, got "
                     f"{name}={value}."
                 )
-        if not (isinstance(self.window, int) and self.window >= 1):
-            raise VIBConfigError(f"`calibration.window` must be a whole number of steps >= 1, got {self.window}.")
+        for name, value in self.or_gammas.items():
+            if name not in SCORES or not (math.isfinite(value) and value > 0):
+                raise VIBConfigError(
+                    f"`calibration.or_gammas` must map scores {SCORES} to positive finite thresholds, got "
+                    f"{name}={value}."
+                )
+        if self.and_gammas and self.or_gammas:
+            raise VIBConfigError(
+                "`calibration.and_gammas` and `calibration.or_gammas` are both set: the stop runs an AND or an OR "
+                "of scores, not both. Calibrate one of them (lerobot-vib-calibrate --and_scores or --or_scores)."
+            )
+        for name in ("window", "or_window"):
+            value = getattr(self, name)
+            if not (isinstance(value, int) and value >= 1):
+                raise VIBConfigError(f"`calibration.{name}` must be a whole number of steps >= 1, got {value}.")
         if self.window_aggregate not in ("mean", "sum"):
             raise VIBConfigError(
                 f"`calibration.window_aggregate` must be 'mean' or 'sum', got {self.window_aggregate!r}."

@@ -9,8 +9,12 @@ Monitor. One score's u_t per step (u = s / s_bar, as the stop reads it), smoothe
 
     m_t = mean(u_{t-w+1..t})   or   sum(u_{t-w+1..t})        (only the steps so far in the episode's first w)
 
-It alarms at its first step with m_t > tau_t, a non-finite m_t included (unknown means stop). A combination
-alarms at the first step at which every member is above its own threshold: FIPER's AND of two scores.
+It alarms at its first step with m_t > tau_t, a non-finite m_t included (unknown means stop). Combinations:
+
+    AND   alarms at the first step at which every member is above its own threshold (FIPER's AND of two scores)
+    OR    (`AnyOf`) alarms at the first step at which any member monitor alarms, each with its own window and
+          threshold: one score that sees a scene the policy never saw (an RND on the embedding) beside one that
+          sees the arm go astray (the state tokens' rate) alarms early where either failure shows first
 
 Calibration, by split-conformal prediction on successful clean rollouts only, at a false-alarm level alpha:
 
@@ -21,7 +25,9 @@ Calibration, by split-conformal prediction on successful clean rollouts only, at
                `lerobot-vib-calibrate --rollouts` takes, so that the stop it sets is the one measured here
 
 so that a successful clean episode exchangeable with the calibration ones alarms with probability at most
-alpha. The members of an AND are each calibrated at alpha; the AND alarms no more often than any of them.
+alpha. The members of an AND are each calibrated at alpha; the AND alarms no more often than any of them. The
+k members of an OR are each calibrated at alpha / k: by the union bound the OR alarms with probability at most
+alpha.
 
 Metrics over a set of episodes: TPR (failures alarmed), TNR (successes not alarmed), accuracy, balanced
 accuracy (TPR + TNR) / 2; detection time, the first alarm's step over the episode's length, in alarmed
@@ -83,6 +89,42 @@ class Monitor:
         return Monitor(tuple(d["scores"]), int(d["window"]), d["aggregate"], d["threshold"])
 
 
+@dataclass(frozen=True)
+class AnyOf:
+    """An OR of monitors: it alarms when any member does. Each member keeps its own window and threshold and is
+    calibrated at alpha / k (the module docstring)."""
+
+    members: tuple[Monitor, ...]
+
+    def __post_init__(self):
+        if len(self.members) < 2 or not all(isinstance(m, Monitor) for m in self.members):
+            raise ValueError(f"An OR needs at least two monitors, got {self.members}.")
+        if len(set(self.scores)) != len(self.scores):
+            raise ValueError(f"An OR's members must read distinct scores, got {self.scores}.")
+
+    @property
+    def scores(self) -> tuple[str, ...]:
+        return tuple(s for m in self.members for s in m.scores)
+
+    @property
+    def threshold(self) -> str:
+        return self.members[0].threshold
+
+    @property
+    def name(self) -> str:
+        return " OR ".join(f"({m.name})" for m in self.members)
+
+    def as_dict(self) -> dict:
+        return {"any_of": [m.as_dict() for m in self.members]}
+
+
+def monitor_from_dict(d: dict) -> Monitor | AnyOf:
+    """A monitor as `as_dict` wrote it, an OR included."""
+    if "any_of" in d:
+        return AnyOf(tuple(Monitor.from_dict(m) for m in d["any_of"]))
+    return Monitor.from_dict(d)
+
+
 @dataclass
 class Episode:
     """What failure prediction reads of one rollout (recorded with the stop off)."""
@@ -131,6 +173,24 @@ def candidate_monitors(
     return out
 
 
+def or_candidates(
+    scores: Sequence[str], windows: Sequence[int] = (1, 5, 10), thresholds: Sequence[str] = THRESHOLDS
+) -> list[AnyOf]:
+    """Every OR of two scores: the first at every window and threshold, the second at every window with a
+    constant threshold (as the policy's stop runs an OR: a band on its own score only), windows aggregated by
+    their mean. An OR of two constants is listed once."""
+    out, seen = [], set()
+    for a, b in itertools.permutations(scores, 2):
+        for wa, wb in itertools.product(windows, windows):
+            for th in thresholds:
+                first, second = Monitor((a,), wa, "mean", th), Monitor((b,), wb, "mean", "constant")
+                key = frozenset((first, second)) if th == "constant" else (first, second)
+                if key not in seen:
+                    seen.add(key)
+                    out.append(AnyOf((first, second)))
+    return out
+
+
 @dataclass
 class CalibratedMonitor:
     monitor: Monitor
@@ -169,6 +229,32 @@ class CalibratedMonitor:
         }
 
 
+@dataclass
+class CalibratedAnyOf:
+    monitor: AnyOf
+    alpha: float
+    members: list[CalibratedMonitor]  # each at alpha / k
+
+    @property
+    def n_calibration(self) -> int:
+        return min(m.n_calibration for m in self.members)
+
+    def above(self, episode: Episode) -> np.ndarray:
+        """(T,) bool: any member above its thresholds at each step."""
+        hit = np.zeros(episode.length, dtype=bool)
+        for m in self.members:
+            a = m.above(episode)
+            hit[: len(a)] |= a
+        return hit
+
+    def alarm(self, episode: Episode) -> int | None:
+        hit = np.flatnonzero(self.above(episode))
+        return int(hit[0]) if len(hit) else None
+
+    def as_dict(self) -> dict:
+        return {"monitor": self.monitor.as_dict(), "alpha": self.alpha, "members": [m.as_dict() for m in self.members]}
+
+
 def _band_for(tau: float | np.ndarray, length: int) -> np.ndarray:
     tau = np.asarray(tau, dtype=np.float64)
     if tau.ndim == 0:
@@ -187,9 +273,15 @@ def calibration_episodes(episodes: Sequence[Episode], scores: Sequence[str] = ()
     return [e for e in unseen_by(episodes, scores) if e.success and e.condition == CLEAN]
 
 
-def calibrate_monitor(monitor: Monitor, episodes: Sequence[Episode], alpha: float) -> CalibratedMonitor:
+def calibrate_monitor(
+    monitor: Monitor | AnyOf, episodes: Sequence[Episode], alpha: float
+) -> CalibratedMonitor | CalibratedAnyOf:
     """Thresholds of `monitor` at level `alpha` from the successful clean ones among `episodes` (the others
-    are ignored: failures and perturbed rollouts never set a threshold, nor rollouts a member was fitted on)."""
+    are ignored: failures and perturbed rollouts never set a threshold, nor rollouts a member was fitted on).
+    An OR's k members are each calibrated at alpha / k."""
+    if isinstance(monitor, AnyOf):
+        share = alpha / len(monitor.members)
+        return CalibratedAnyOf(monitor, alpha, [calibrate_monitor(m, episodes, share) for m in monitor.members])
     calib = calibration_episodes(episodes, monitor.scores)
     needed = conformal_min_scores(alpha) * (2 if monitor.threshold == "band" else 1)
     if len(calib) < needed:
@@ -265,7 +357,7 @@ class FailureMetrics:
         }
 
 
-def evaluate(calibrated: CalibratedMonitor, episodes: Sequence[Episode]) -> FailureMetrics:
+def evaluate(calibrated: CalibratedMonitor | CalibratedAnyOf, episodes: Sequence[Episode]) -> FailureMetrics:
     """The monitor's alarms judged against each episode's outcome (the module docstring's metrics)."""
     failed = [e for e in episodes if not e.success]
     succeeded = [e for e in episodes if e.success]
@@ -283,26 +375,33 @@ def evaluate(calibrated: CalibratedMonitor, episodes: Sequence[Episode]) -> Fail
 
 
 def choose_monitor(
-    candidates: Sequence[Monitor], validation: dict[object, Sequence[Episode]], alpha: float
-) -> tuple[Monitor | None, list[dict]]:
+    candidates: Sequence[Monitor | AnyOf],
+    validation: dict[object, Sequence[Episode]],
+    alpha: float,
+    benign: Sequence[str] = (),
+) -> tuple[Monitor | AnyOf | None, list[dict]]:
     """The candidate with the best balanced accuracy on the validation rollouts, averaged over the groups of
     `validation` (one per training seed, each calibrated on its own successful clean rollouts); a tie goes to
     the earlier detection, then to the one listed first. A monitor is judged on the rollouts its scores were not
-    fitted on. Returns it (None: none could be calibrated) and every candidate's row, best first. Only validation
-    rollouts are read."""
+    fitted on. Returns it (None: none could be calibrated) and every candidate's row, best first; a row's
+    "benign_stopped" is the share of successful rollouts under the `benign` conditions it alarms on. Only
+    validation rollouts are read."""
     rows = []
     for i, monitor in enumerate(candidates):
-        per_group = []
+        per_group, benign_groups = [], []
         for episodes in validation.values():
             try:
                 calibrated = calibrate_monitor(monitor, episodes, alpha)
-                per_group.append(evaluate(calibrated, unseen_by(episodes, monitor.scores)))
+                judged = unseen_by(episodes, monitor.scores)
+                per_group.append(evaluate(calibrated, judged))
+                benign_groups.append(evaluate(calibrated, [e for e in judged if e.success and e.condition in benign]))
             except CalibrationError:
                 per_group = []
                 break
         if not per_group or any(m.balanced_accuracy is None for m in per_group):
             continue
         detection = [m.detection_time for m in per_group if m.detection_time is not None]
+        benign_stopped = [1 - m.tnr for m in benign_groups if m.tnr is not None]
         rows.append(
             {
                 "monitor": monitor,
@@ -311,6 +410,7 @@ def choose_monitor(
                 "tpr": float(np.mean([m.tpr for m in per_group])),
                 "tnr": float(np.mean([m.tnr for m in per_group])),
                 "detection_time": float(np.mean(detection)) if detection else math.inf,
+                "benign_stopped": float(np.mean(benign_stopped)) if benign_stopped else None,
             }
         )
     rows.sort(key=lambda r: (-r["balanced_accuracy"], r["detection_time"], r["order"]))

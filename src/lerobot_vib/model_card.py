@@ -110,6 +110,13 @@ def describe_calibration(config, rate_mean: float, training_data: str | None = N
         if c.and_gammas:
             partners = ", ".join(f"`{k}` above {g:.4g}" for k, g in c.and_gammas.items())
             lines.append(f"- The stop fires only when also {partners} (an AND of scores, each set as gamma was).")
+        if c.or_gammas:
+            over = "" if c.or_window == 1 else f" (its mean over {c.or_window} steps)"
+            partners = ", ".join(f"`{k}`{over} above {g:.4g}" for k, g in c.or_gammas.items())
+            lines.append(
+                f"- The stop also fires when {partners} (an OR of scores; each threshold, gamma's included, set at "
+                f"alpha / {len(c.or_gammas) + 1} so that the OR keeps alpha)."
+            )
         if c.window > 1:
             lines.append(
                 f"- The stop reads u's {c.window_aggregate} over each env's last {c.window} steps, as gamma was set."

@@ -262,7 +262,7 @@ class VIBPolicy(PreTrainedPolicy):
             self._rate_map = self.last_step.rate_map
             self._embedding = self.last_step.embedding
         else:
-            partners = self.config.calibration.and_gammas
+            partners = {**self.config.calibration.and_gammas, **self.config.calibration.or_gammas}
             every = self.trace_all_scores or bool(partners)
             posterior, scores = self.observation_scores(batch, None if every else score)
             rate = scores["rate"]
@@ -325,6 +325,7 @@ class VIBPolicy(PreTrainedPolicy):
             and self.config.uncertainty_score != "chunk_disagreement"
             and not self.trace_all_scores
             and not self.config.calibration.and_gammas
+            and not self.config.calibration.or_gammas
             and self.runtime.queued
             and self.last_step is not None
             and not self.runtime.any_stopped

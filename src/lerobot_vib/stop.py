@@ -149,9 +149,10 @@ class PolicyStop:
         if self.progress is not None:
             self.progress += (~stopped.to(self.progress.device)).long()
 
-    def windowed(self, u: Tensor, score: str = "") -> Tensor:
-        """m_t of `score`'s u (module docstring); a non-finite u in the window stays unknown."""
-        window = self.config.calibration.window
+    def windowed(self, u: Tensor, score: str = "", window: int | None = None) -> Tensor:
+        """m_t of `score`'s u over `window` steps (default the calibrated one; module docstring); a non-finite u
+        in the window stays unknown."""
+        window = self.config.calibration.window if window is None else window
         if window == 1:
             return u
         recent = [*self.recent_u.get(score, [])[-(window - 1) :], u]
@@ -160,18 +161,22 @@ class PolicyStop:
         return total / len(recent) if self.config.calibration.window_aggregate == "mean" else total
 
     def value(self, u: Tensor, scores: dict[str, Tensor] | None, gamma: float | Tensor) -> Tensor:
-        """v_t (module docstring). `scores`: the step's raw score values, which an AND's members are read from."""
+        """v_t (module docstring). `scores`: the step's raw score values, which an AND's or an OR's members are
+        read from."""
         m = self.windowed(u)
-        partners = self.config.calibration.and_gammas
+        c = self.config.calibration
+        partners, combine = (c.and_gammas, torch.minimum) if c.and_gammas else (c.or_gammas, torch.maximum)
         if not partners:
             return m
+        window = c.window if c.and_gammas else c.or_window
         threshold = torch.as_tensor(gamma, dtype=m.dtype, device=m.device).expand_as(m)
         ratio = m / threshold
         for name, g in partners.items():
             if scores is None or name not in scores:
                 raise RuntimeError(f"The stop needs the {name!r} score at every step, and this step has none.")
-            partner = self.windowed(scores[name] / self.score_mean(name), name)
-            ratio = torch.minimum(ratio, partner / g)
+            partner = self.windowed(scores[name] / self.score_mean(name), name, window)
+            # unknown means stop: a non-finite member makes v_t non-finite in either combination
+            ratio = torch.where(torch.isfinite(partner), combine(ratio, partner / g), partner)
         return ratio * threshold
 
     def quantity(self) -> str:
@@ -180,6 +185,9 @@ class PolicyStop:
         quantity = "u" if c.window == 1 else f"u's {c.window_aggregate} over {c.window} steps"
         if c.and_gammas:
             quantity += " (AND " + ", ".join(f"{k} above {g:.3g}" for k, g in c.and_gammas.items()) + ")"
+        if c.or_gammas:
+            over = "" if c.or_window == 1 else f" over {c.or_window} steps"
+            quantity += " (OR " + ", ".join(f"{k}{over} above {g:.3g}" for k, g in c.or_gammas.items()) + ")"
         return quantity
 
     def log_events(

@@ -66,7 +66,7 @@ from tqdm import tqdm
 
 from ..calibration import mean_plus_2std_gamma
 from ..configuration_vib import VIBConfigError
-from ..failure import CalibratedMonitor, Monitor, evaluate
+from ..failure import AnyOf, CalibratedAnyOf, CalibratedMonitor, Monitor, evaluate, monitor_from_dict
 from ..modeling_vib import VIBPolicy
 from ..provenance import env_record, training_recording
 from ..rnd import RND, RNDConfig, train_rnd
@@ -715,7 +715,7 @@ def ship_checkpoints(cfg: BenchmarkConfig, cells: dict, results: dict) -> list[P
     for variant, result in (results.get("failure_prediction") or {}).items():
         if "shipped" not in result:
             continue
-        monitor = Monitor.from_dict(result["shipped"]["monitor"])
+        monitor = monitor_from_dict(result["shipped"]["monitor"])
         network = VARIANTS[variant].chunks
         for seed in cfg.train_seeds:
             runtime = runtime_of(choices, variant, seed)
@@ -765,11 +765,16 @@ def _calibrated_path(cfg: BenchmarkConfig, network: str, seed: int) -> Path | No
 
 
 def _shipped_policy(
-    cfg: BenchmarkConfig, variant, network, source: Path, runtime, monitor: Monitor, validation, tests, seed
+    cfg: BenchmarkConfig, variant, network, source: Path, runtime, monitor: Monitor | AnyOf, validation, tests, seed
 ) -> VIBPolicy:
     policy = build_variant(variant, {network: VIBPolicy.from_pretrained(source)}, runtime=runtime)
     config = policy.config
-    score, partners = monitor.scores[0], list(monitor.scores[1:])
+    # an OR: its first member is the stop's own score (with its window and threshold), the others its OR partners
+    primary = monitor.members[0] if isinstance(monitor, AnyOf) else monitor
+    others = list(monitor.members[1:]) if isinstance(monitor, AnyOf) else []
+    if len({m.window for m in others}) > 1 or any(m.threshold != "constant" or len(m.scores) > 1 for m in others):
+        raise VIBConfigError(f"The policy's stop cannot run {monitor.name}: its OR partners need one window.")
+    score, partners = primary.scores[0], list(primary.scores[1:])
     config.uncertainty_score = score
     calibration = config.calibration
     means = {"rate": calibration.rate_mean, **calibration.score_means}
@@ -791,14 +796,21 @@ def _shipped_policy(
     calibration = gamma_from_rollouts(
         calibration, info, cfg.alpha, f"{variant}'s validation rollouts (seed {seed})", score,
         threshold="max" if monitor.threshold == "constant" else "time_band", traces=traces[score],
-        policy_config=config, recording=recorded[1] if recorded else None, window=monitor.window,
-        window_aggregate=monitor.aggregate, and_traces={name: traces[name] for name in partners},
-        episodes="successes",
+        policy_config=config, recording=recorded[1] if recorded else None, window=primary.window,
+        window_aggregate=primary.aggregate, and_traces={name: traces[name] for name in partners},
+        episodes="successes", or_traces={m.scores[0]: traces[m.scores[0]] for m in others} or None,
+        or_window=others[0].window if others else 1,
     )  # fmt: skip
     # What this stop, with these very thresholds, predicts on the test rollouts
     thresholds = {score: np.asarray(calibration.gamma_band) if calibration.gamma_band else calibration.gamma}
     thresholds.update(calibration.and_gammas)
-    stop = CalibratedMonitor(monitor, cfg.alpha, thresholds, calibration.rollout_successes or 0)
+    n = calibration.rollout_successes or 0
+    stop: CalibratedMonitor | CalibratedAnyOf = CalibratedMonitor(primary, cfg.alpha, thresholds, n)
+    if others:
+        share = cfg.alpha / len(monitor.members)
+        members = [CalibratedMonitor(primary, share, thresholds, n)]
+        members += [CalibratedMonitor(m, share, {m.scores[0]: calibration.or_gammas[m.scores[0]]}, n) for m in others]
+        stop = CalibratedAnyOf(monitor, cfg.alpha, members)
     metrics = evaluate(stop, [e for c in tests for e in cell_episodes(c)]).as_dict()
     seeds = sorted({s for c in tests for s in c["seeds"]})
     config.calibration = dataclasses.replace(

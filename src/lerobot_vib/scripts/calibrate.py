@@ -103,6 +103,11 @@ class CalibrateConfig:
     and_scores: With `rollouts`: other scores the stop also needs above their own threshold (an AND, FIPER's
         combination), each set at `conformal_alpha` on the same rollouts' per-step u of that score over the same
         window (the `u_<score>` columns lerobot-vib-eval writes); `calibration.and_gammas`.
+    or_scores: With `rollouts`: other scores any of which, above its own constant threshold, also stops (an OR,
+        failure.AnyOf): each read over `or_window` steps, and every threshold, gamma's included, set at
+        `conformal_alpha` / k for k members so that the OR keeps `conformal_alpha`; `calibration.or_gammas`.
+        Not with `and_scores`.
+    or_window: The window of the `or_scores`, in steps.
     rnd_steps: Training steps of the "embedding_rnd" score's predictor (batch 256, on the recorded embeddings).
     num_workers: DataLoader workers.
     output_dir: Where to write the calibrated checkpoint (default: `<checkpoint>_calibrated` beside a local
@@ -128,6 +133,8 @@ class CalibrateConfig:
     window: int = 1
     window_aggregate: str = "mean"
     and_scores: list[str] = field(default_factory=list)
+    or_scores: list[str] = field(default_factory=list)
+    or_window: int = 1
     rollout_episodes: str = "all"
     output_dir: Path | None = None
     in_place: bool = False
@@ -189,7 +196,13 @@ class CalibrateConfig:
             raise VIBConfigError("`--rollout_episodes` chooses among rollouts: give `--rollouts=` too.")
         if unknown := sorted(set(self.and_scores) - set(SCORES)):
             raise VIBConfigError(f"`--and_scores` must name scores of {SCORES}; unknown: {unknown}.")
-        if (self.window > 1 or self.and_scores) and self.rollouts is None:
+        if unknown := sorted(set(self.or_scores) - set(SCORES)):
+            raise VIBConfigError(f"`--or_scores` must name scores of {SCORES}; unknown: {unknown}.")
+        if self.and_scores and self.or_scores:
+            raise VIBConfigError("`--and_scores` and `--or_scores` are both given: the stop runs one of them.")
+        if self.or_window < 1:
+            raise VIBConfigError(f"`--or_window` must be >= 1, got {self.or_window}.")
+        if (self.window > 1 or self.and_scores or self.or_scores) and self.rollouts is None:
             raise VIBConfigError(
                 "`--window` sets the stop's window with its threshold from rollouts: give `--rollouts=`."
             )
@@ -465,6 +478,8 @@ def gamma_from_rollouts(
     window_aggregate: str = "mean",
     and_traces: dict[str, list[np.ndarray]] | None = None,
     episodes: str = "all",
+    or_traces: dict[str, list[np.ndarray]] | None = None,
+    or_window: int = 1,
 ) -> CalibrationConfig:
     """`calibration` with gamma = the split-conformal threshold on clean rollouts' per-episode max u of the
     score the checkpoint reads u from (`expected_score`); with `threshold="time_band"`, the time-indexed band
@@ -476,8 +491,14 @@ def gamma_from_rollouts(
     (provenance.py), u normalized as this checkpoint normalizes it. With `window` > 1 both thresholds are set on
     u aggregated over the last `window` steps (failure.windowed), from the per-step `traces`. `and_traces`
     ({score: per-step u of each rollout}) adds an AND: each score's threshold, conformal at `alpha` on its
-    windowed maxima, into `and_gammas`. `episodes="successes"` sets every threshold on the successful rollouts
-    only (failure prediction's calibration)."""
+    windowed maxima, into `and_gammas`. `or_traces` adds an OR instead: each score's threshold on its maxima
+    over `or_window` steps into `or_gammas`, and every threshold, gamma's included, at alpha / k for k members.
+    `episodes="successes"` sets every threshold on the successful rollouts only (failure prediction's
+    calibration)."""
+    if and_traces and or_traces:
+        raise VIBConfigError("An AND and an OR of scores were both given: the stop runs one of them.")
+    # the union bound: k members each at alpha / k alarm together on at most alpha of clean rollouts
+    member_alpha = alpha / (1 + len(or_traces)) if or_traces else alpha
     if calibration.rate_mean is None:
         raise VIBConfigError(
             "The checkpoint has no R_bar: calibrate it on its dataset first, evaluate that checkpoint, then use "
@@ -523,27 +544,32 @@ def gamma_from_rollouts(
                 "lerobot-vib-eval's uncertainty_info.json."
             )
         n = len(info["per_episode"])
-        if any(len(t) != n for t in [*([traces] if traces is not None else []), *(and_traces or {}).values()]):
+        partner_traces = [*(and_traces or {}).values(), *(or_traces or {}).values()]
+        if any(len(t) != n for t in [*([traces] if traces is not None else []), *partner_traces]):
             raise VIBConfigError(f"{source}'s per-step traces do not hold one record per rollout ({n}).")
         kept = [i for i, ep in enumerate(info["per_episode"]) if ep["success"]]
         scores = [scores[i] for i in kept]
         traces = None if traces is None else [traces[i] for i in kept]
         and_traces = {k: [v[i] for i in kept] for k, v in (and_traces or {}).items()} or None
+        or_traces = {k: [v[i] for i in kept] for k, v in (or_traces or {}).items()} or None
     elif episodes != "all":
         raise ValueError(f"`episodes` must be one of {ROLLOUT_EPISODES}, got {episodes!r}.")
     what = "successful rollouts" if episodes == "successes" else "rollouts"
-    if window > 1 or and_traces:
+    if window > 1 or and_traces or or_traces:
         if traces is None or len(traces) != len(scores):
-            what = f"A window of {window} steps" if window > 1 else "An AND of scores"
+            what = f"A window of {window} steps" if window > 1 else "A combination of scores"
             raise VIBConfigError(f"{what} needs the per-step u of every rollout in {source}.")
         traces = [windowed(t, window, window_aggregate) for t in traces]
         scores = [float(np.max(t)) for t in traces]
     and_gammas = _and_gammas(calibration, info, and_traces or {}, score, len(scores), alpha, source, window,
                              window_aggregate)  # fmt: skip
-    needed = conformal_min_scores(alpha) * (2 if threshold == "time_band" else 1)
+    or_gammas = _and_gammas(calibration, info, or_traces or {}, score, len(scores), member_alpha, source, or_window,
+                            window_aggregate, flag="--or_scores")  # fmt: skip
+    needed = conformal_min_scores(member_alpha) * (2 if threshold == "time_band" else 1)
     if len(scores) < needed:
         raise VIBConfigError(
-            f"A {'time-indexed band' if threshold == 'time_band' else 'conformal threshold'} at alpha={alpha} needs "
+            f"A {'time-indexed band' if threshold == 'time_band' else 'conformal threshold'} at "
+            f"alpha={member_alpha:.3g} needs "
             f"at least {needed} {what}; {source} has {len(scores)}."
             + (" Evaluate more clean rollouts, or use `--threshold=max`." if threshold == "time_band" else "")
         )
@@ -552,11 +578,11 @@ def gamma_from_rollouts(
         if traces is None or len(traces) != len(scores):
             raise VIBConfigError(f"The time-indexed band needs the per-step u of every rollout in {source}.")
         half = len(traces) // 2
-        band = [float(g) for g in time_indexed_band(traces[:half], traces[half:], alpha)]
+        band = [float(g) for g in time_indexed_band(traces[:half], traces[half:], member_alpha)]
         gamma = max(band)
         above = [bool(np.any(t > np.asarray(band)[: len(t)])) for t in traces]
     else:
-        gamma = conformal_gamma(np.asarray(scores), alpha)
+        gamma = conformal_gamma(np.asarray(scores), member_alpha)
         above = [s > gamma for s in scores]
     if and_gammas:  # an episode the AND stops: at some step every member is above its threshold
         above = []
@@ -565,6 +591,10 @@ def gamma_from_rollouts(
             for name, g in and_gammas.items():
                 hit &= windowed(and_traces[name][i], window, window_aggregate)[: len(t)] > g
             above.append(bool(hit.any()))
+    if or_gammas:  # an episode the OR stops: at some step any member is above its threshold
+        for i in range(len(traces)):
+            for name, g in or_gammas.items():
+                above[i] = bool(above[i] or np.any(windowed(or_traces[name][i], or_window, window_aggregate) > g))
     return replace(
         calibration,
         gamma=gamma,
@@ -584,6 +614,8 @@ def gamma_from_rollouts(
         window=window,
         window_aggregate=window_aggregate,
         and_gammas=and_gammas,
+        or_gammas=or_gammas,
+        or_window=or_window,
     )
 
 
@@ -597,13 +629,14 @@ def _and_gammas(
     source: str,
     window: int,
     window_aggregate: str,
+    flag: str = "--and_scores",
 ) -> dict[str, float]:
-    """Each AND member's threshold on the rollouts, refused unless its u was normalized as this checkpoint
-    normalizes it and every rollout has its trace."""
+    """Each AND (or OR) member's threshold on the rollouts, refused unless its u was normalized as this
+    checkpoint normalizes it and every rollout has its trace."""
     out = {}
     for name, traces in and_traces.items():
         if name == score:
-            raise VIBConfigError(f"`--and_scores` repeats the stop's own score {score!r}.")
+            raise VIBConfigError(f"`{flag}` repeats the stop's own score {score!r}.")
         expected = calibration.rate_mean if name == "rate" else calibration.score_means.get(name)
         recorded = (info.get("score_means") or {}).get(name)
         if expected is None or recorded is None or not math.isclose(recorded, expected, rel_tol=1e-4):
@@ -696,10 +729,11 @@ def _calibrate_on_rollouts(cfg: CalibrateConfig) -> CalibrationConfig:
     info = json.loads(Path(cfg.rollouts).read_text())
     traces, and_traces = None, None
     trace_file = Path(cfg.rollouts).with_name("uncertainty_trace.csv")
-    if cfg.threshold == "time_band" or cfg.window > 1 or cfg.and_scores:
+    if cfg.threshold == "time_band" or cfg.window > 1 or cfg.and_scores or cfg.or_scores:
         traces = read_traces(trace_file)
     if cfg.and_scores:
         and_traces = {name: read_traces(trace_file, f"u_{name}") for name in cfg.and_scores}
+    or_traces = {name: read_traces(trace_file, f"u_{name}") for name in cfg.or_scores} or None
     calibration = gamma_from_rollouts(
         cfg.policy.calibration,
         info,
@@ -714,6 +748,8 @@ def _calibrate_on_rollouts(cfg: CalibrateConfig) -> CalibrationConfig:
         window_aggregate=cfg.window_aggregate,
         and_traces=and_traces,
         episodes=cfg.rollout_episodes,
+        or_traces=or_traces,
+        or_window=cfg.or_window,
     )
     policy = VIBPolicy.from_pretrained(source, config=cfg.policy)
     preprocessor, _ = make_pre_post_processors(policy.config, pretrained_path=str(source))
@@ -731,6 +767,12 @@ def _calibrate_on_rollouts(cfg: CalibrateConfig) -> CalibrationConfig:
         )
         + f"{100 * calibration.episodes_above_gamma:.0f}% of them exceed it"
         + (f"; on u's {cfg.window_aggregate} over {cfg.window} steps" if cfg.window > 1 else "")
+        + (
+            f"; OR {', '.join(f'{k} above {g:.4g}' for k, g in calibration.or_gammas.items())}, every threshold at "
+            f"alpha / {len(calibration.or_gammas) + 1}"
+            if calibration.or_gammas
+            else ""
+        )
         + "). R_bar={calibration.rate_mean:.6g} "
         "is unchanged."
     )

@@ -4,9 +4,12 @@ Per scored VIB row whose cells hold every score (`--calibrate=true`):
 
 1. validation: each training seed's validation rollouts at the row's chosen run time, clean and (with
    `--failure_validation`) under every perturbed condition. Every candidate monitor the policy's stop can run
-   (failure.candidate_monitors over the scores the cells hold; an AND with constant thresholds) is calibrated
-   on that seed's successful clean ones at `alpha` and judged on all of them, ranked by balanced accuracy
-   averaged over the seeds; the best ships.
+   (failure.candidate_monitors and failure.or_candidates over the scores the cells hold: each score alone, an
+   AND with constant partners, an OR with a constant partner) is calibrated on that seed's successful clean
+   ones at `alpha` and judged on all of them, averaged over the seeds. What ships (`ship_rule`): among the
+   monitors that meet the TPR and TNR targets on validation, the one that alarms earliest in failures; with
+   none meeting them, the best balanced accuracy. Balanced accuracy alone does not ask when a monitor alarms,
+   and a robot's user asks both whether an episode will fail and how early that is known.
 2. test: the shipped monitor, each seed calibrated on its own validation successes, judged on every test
    cell: per condition, pooled over conditions and seeds, and at every level of `failure_alphas` (the
    TPR-against-TNR curve). Beside it, for reference: each score alone at one step with a constant threshold
@@ -32,6 +35,7 @@ import numpy as np
 
 from ..failure import (
     CLEAN,
+    AnyOf,
     CalibrationError,
     Episode,
     FailureMetrics,
@@ -41,6 +45,8 @@ from ..failure import (
     candidate_monitors,
     choose_monitor,
     evaluate,
+    monitor_from_dict,
+    or_candidates,
 )
 
 VALIDATION = "validation"
@@ -120,7 +126,7 @@ def with_rollout_rnd(cells: dict, variant: str, seed: int, runtime: str, steps: 
     return out
 
 
-def _test_metrics(monitor: Monitor, validation: dict, test: dict, alpha: float) -> dict | None:
+def _test_metrics(monitor: Monitor | AnyOf, validation: dict, test: dict, alpha: float) -> dict | None:
     """Per condition and pooled over conditions and seeds; None if a seed cannot be calibrated."""
     calibrated = {}
     for seed, episodes in validation.items():
@@ -162,18 +168,34 @@ def _pool(metrics: list[FailureMetrics]) -> FailureMetrics:
     )
 
 
-EARLIEST = "the earliest on validation among those with TPR and TNR >= 0.9 there"
+EARLIEST = "the earliest on validation among those meeting the TPR, TNR and benign-stop targets there"
+BEST_BALANCED = "the best balanced accuracy on validation"
 
 
-def earliest_meeting_targets(ranking: list[dict]) -> Monitor | None:
-    """Of `choose_monitor`'s rows, the monitor that alarms earliest in failures among those meeting the TPR and
-    TNR targets on validation (ties: the better balanced accuracy, then the order listed); None if none meets
-    them. Balanced accuracy, which ships a monitor, does not ask when it alarms: this one says whether any
-    monitor could have met the detection-time target too."""
-    meets = [r for r in ranking if r["tpr"] >= TARGETS["tpr"] and r["tnr"] >= TARGETS["tnr"]]
+def earliest_meeting_targets(ranking: list[dict]) -> Monitor | AnyOf | None:
+    """Of `choose_monitor`'s rows, the monitor that alarms earliest in failures among those meeting the TPR, TNR
+    and benign-stop targets on validation (ties: the better balanced accuracy, then the order listed); None if
+    none meets them. A row without benign rollouts is judged on TPR and TNR alone."""
+    meets = [
+        r
+        for r in ranking
+        if r["tpr"] >= TARGETS["tpr"]
+        and r["tnr"] >= TARGETS["tnr"]
+        and (r.get("benign_stopped") is None or r["benign_stopped"] <= TARGETS["benign_stopped"])
+    ]
     if not meets:
         return None
     return min(meets, key=lambda r: (r["detection_time"], -r["balanced_accuracy"], r["order"]))["monitor"]
+
+
+def ship_rule(ranking: list[dict]) -> tuple[Monitor | AnyOf, str]:
+    """The monitor that ships, from `choose_monitor`'s rows (best balanced accuracy first), and the rule that
+    picked it: the earliest of those meeting the TPR and TNR targets on validation, else the best balanced
+    accuracy."""
+    earliest = earliest_meeting_targets(ranking)
+    if earliest is not None:
+        return earliest, EARLIEST
+    return ranking[0]["monitor"], BEST_BALANCED
 
 
 def failure_prediction(cfg, cells: dict, runtime_of) -> dict:
@@ -202,27 +224,36 @@ def failure_prediction(cfg, cells: dict, runtime_of) -> dict:
         if not validation or not any(test.values()):
             continue
         names = sorted(set.intersection(*[set(e.scores) for eps in validation.values() for e in eps]))
-        candidates = candidate_monitors(names)
-        # The policy's stop runs any candidate with a constant threshold on its partners (an AND's first score
-        # may have a band): `lerobot-vib-calibrate --rollouts --window --and_scores` sets it.
-        # The RND fitted on rollouts is measured beside them, not shipped: the policy's stop reads the RND that
-        # `lerobot-vib-calibrate` fitted on the training frames.
+        candidates = [*candidate_monitors(names), *or_candidates(names)]
+        # The policy's stop runs any candidate with a constant threshold on its partners (an AND's or an OR's
+        # first score may have a band): `lerobot-vib-calibrate --rollouts --window --and_scores|--or_scores` sets
+        # it. The RND fitted on rollouts is measured beside them, not shipped: the policy's stop reads the RND
+        # that `lerobot-vib-calibrate` fitted on the training frames.
         runnable = [
-            m for m in candidates if (len(m.scores) == 1 or m.threshold == "constant") and ROLLOUT_RND not in m.scores
+            m
+            for m in candidates
+            if (isinstance(m, AnyOf) or len(m.scores) == 1 or m.threshold == "constant") and ROLLOUT_RND not in m.scores
         ]
-        shipped, ranking = choose_monitor(runnable, validation, cfg.alpha)
-        if shipped is None:
+        best, ranking = choose_monitor(runnable, validation, cfg.alpha, benign=BENIGN)
+        if best is None:
             out[variant] = {"error": "no monitor could be calibrated on the validation rollouts' successes"}
             continue
+        shipped, rule = ship_rule(ranking)
         references = {f"{n} alone": Monitor((n,)) for n in names if Monitor((n,)) != shipped}
         if "low_image_rate" in names:
             references["the stop as shipped today"] = Monitor(("low_image_rate",), threshold="band")
-        fiper = [r["monitor"] for r in ranking if set(r["monitor"].scores) == set(FIPER_PAIR)]
+        fiper = [
+            r["monitor"]
+            for r in ranking
+            if isinstance(r["monitor"], Monitor) and set(r["monitor"].scores) == set(FIPER_PAIR)
+        ]
         if fiper:
             references["FIPER-like: embedding RND AND chunk disagreement, best on validation"] = fiper[0]
-        earliest = earliest_meeting_targets(ranking)
-        if earliest is not None and earliest != shipped:
-            references[EARLIEST] = earliest
+        if best != shipped:
+            references[BEST_BALANCED] = best
+        ands = [r["monitor"] for r in ranking if isinstance(r["monitor"], Monitor) and len(r["monitor"].scores) > 1]
+        if ands and ands[0] not in (shipped, best):
+            references["the best AND on validation"] = ands[0]
         if ROLLOUT_RND in names:
             _, on_rollouts = choose_monitor([m for m in candidates if ROLLOUT_RND in m.scores], validation, cfg.alpha)
             if on_rollouts:
@@ -239,7 +270,13 @@ def failure_prediction(cfg, cells: dict, runtime_of) -> dict:
             },
             "candidates": len(runnable),
             "ranking": [{**r, "monitor": r["monitor"].as_dict(), "name": r["monitor"].name} for r in ranking[:15]],
-            "shipped": {"monitor": shipped.as_dict(), "name": shipped.name, "alpha": cfg.alpha},
+            "shipped": {
+                "monitor": shipped.as_dict(),
+                "name": shipped.name,
+                "alpha": cfg.alpha,
+                "rule": rule,
+                "validation": {k: v for r in ranking if r["monitor"] == shipped for k, v in r.items() if k != "monitor"},  # noqa: E501
+            },
             "test": _test_metrics(shipped, validation, test, cfg.alpha),
             "sweep": {},
             "references": {},
@@ -259,9 +296,13 @@ def failure_prediction(cfg, cells: dict, runtime_of) -> dict:
     return out
 
 
-def ship_command(m: Monitor, alpha: float) -> str:
-    """The commands that put monitor `m` into a checkpoint's stop."""
+def ship_command(monitor: Monitor | AnyOf, alpha: float) -> str:
+    """The commands that put `monitor` into a checkpoint's stop."""
+    m = monitor.members[0] if isinstance(monitor, AnyOf) else monitor
     partners = f" --and_scores='[{','.join(m.scores[1:])}]'" if len(m.scores) > 1 else ""
+    if isinstance(monitor, AnyOf):
+        others = monitor.members[1:]
+        partners += f" --or_scores='[{','.join(o.scores[0] for o in others)}]' --or_window={others[0].window}"
     return (
         f"To ship it on a checkpoint: evaluate clean rollouts of the calibrated checkpoint with `lerobot-vib-eval "
         f"--policy.uncertainty_score={m.scores[0]}` (the stop off; it records every score's u), then "
@@ -297,15 +338,23 @@ def markdown(cfg, failure: dict, labels: dict[str, str]) -> list[str]:
             lines += [result["error"] + "."]
             continue
         lines += [shipped_line(result), ""]
-        lines += [ship_command(Monitor.from_dict(result["shipped"]["monitor"]), cfg.alpha), ""]
+        lines += [ship_command(monitor_from_dict(result["shipped"]["monitor"]), cfg.alpha), ""]
         test = result["test"] or {}
         pooled = test.get("pooled") or {}
+        rule = result["shipped"].get("rule", BEST_BALANCED)
         lines += [
-            f"The shipped monitor is **{result['shipped']['name']}** at alpha = {cfg.alpha}, the best among "
-            f"{result['candidates']} candidates (each score alone and every AND of two; "
-            "windows 1, 5, 10 steps; mean or sum; a constant threshold or a time-varying band, an AND's band on "
-            "its first score only, as the policy's stop runs them) by its balanced "
-            "accuracy on the validation rollouts, clean and under every condition ("
+            f"The shipped monitor is **{result['shipped']['name']}** at alpha = {cfg.alpha}: among "
+            f"{result['candidates']} candidates (each score alone, every AND of two and every OR of two; "
+            "windows 1, 5, 10 steps; mean or sum; a constant threshold or a time-varying band, the band on the "
+            "first score only, as the policy's stop runs them; an OR's k members each at alpha / k), "
+            + (
+                "the one that alarms earliest in failed episodes among those with TPR and TNR >= 0.9 and at most "
+                "10% of successful noise and colour-jitter rollouts alarmed"
+                if rule == EARLIEST
+                else "none met TPR and TNR >= 0.9 with at most 10% of benign successes alarmed, so the one with "
+                "the best balanced accuracy"
+            )
+            + " on the validation rollouts, clean and under every condition ("
             + ", ".join(
                 f"seed {s}: {result['validation_successes'][s]} successes of {n}, "
                 f"{result['calibration_episodes'][s]} of them clean"
@@ -364,15 +413,19 @@ def markdown(cfg, failure: dict, labels: dict[str, str]) -> list[str]:
         lines += ["", "Targets (alpha = " + str(cfg.alpha) + ", pooled, test seeds): " + "; ".join(met) + "."]
         lines += [
             "",
-            "Validation ranking (the first 15 of the candidates; balanced accuracy averaged over the seeds):",
+            "Validation: the shipped monitor, then the first 15 candidates by balanced accuracy (averaged over the "
+            "seeds):",
             "",
-            "| monitor | balanced accuracy | TPR | TNR | detection time |",
-            "| --- | --- | --- | --- | --- |",
+            "| monitor | balanced accuracy | TPR | TNR | detection time | benign successes alarmed |",
+            "| --- | --- | --- | --- | --- | --- |",
         ]
-        for r in result["ranking"]:
+        shipped_row = result["shipped"].get("validation")
+        ranked = [*([{**shipped_row, "name": "shipped: " + result["shipped"]["name"]}] if shipped_row else [])]
+        for r in [*ranked, *result["ranking"]]:
             lines.append(
                 f"| {r['name']} | {_f(r['balanced_accuracy'])} | {_f(r['tpr'])} | {_f(r['tnr'])} | "
-                f"{_f(r['detection_time'] if math.isfinite(r['detection_time']) else None)} |"
+                f"{_f(r['detection_time'] if math.isfinite(r['detection_time']) else None)} | "
+                f"{_f(r.get('benign_stopped'))} |"
             )
     return lines
 
