@@ -275,7 +275,9 @@ def failure_prediction(cfg, cells: dict, runtime_of) -> dict:
                 "name": shipped.name,
                 "alpha": cfg.alpha,
                 "rule": rule,
-                "validation": {k: v for r in ranking if r["monitor"] == shipped for k, v in r.items() if k != "monitor"},  # noqa: E501
+                "validation": {
+                    k: v for r in ranking if r["monitor"] == shipped for k, v in r.items() if k != "monitor"
+                },
             },
             "test": _test_metrics(shipped, validation, test, cfg.alpha),
             "sweep": {},
