@@ -467,3 +467,45 @@ def test_an_and_stop_fires_only_while_both_scores_are_above_and_ends_when_either
     assert just_stopped == [1, 4] and resumed == [3, 5]  # the rate fell at 3, the image rate at 5
     assert values[0] == pytest.approx(1.0) and values[3] == pytest.approx(1.0)  # 2 * min(3/2, 1/2)
     assert set(asked) == {None}  # every score is computed when an AND needs them
+
+
+def test_an_or_stop_fires_while_either_score_is_above_and_ends_only_when_both_have_fallen():
+    """The OR in the policy: the rate (gamma 2) or the image rate (its own threshold 2) stops the arm."""
+    config = make_config(uncertainty_score="rate")
+    policy = with_rate_statistics(VIBPolicy(config))
+    c = policy.config.calibration
+    c.gamma, c.gamma_score, c.gamma_method, c.or_gammas = 2.0, "rate", "conformal_rollouts", {"image_rate": 2.0}
+    c.score_means = {"image_rate": 1.0}
+    policy.config.safety.enabled, policy.config.safety.resume_steps = True, 1
+    r_bar, real = policy.rate_mean(), policy.observation_scores
+    script = iter([(1.0, 1.0), (1.0, 3.0), (3.0, 1.0), (1.0, 1.0), (3.0, 1.0), (1.0, 1.0)])
+    asked = []
+
+    def scripted(batch, wanted=None):
+        asked.append(wanted)
+        posterior, scores = real(batch, wanted)
+        rate, image = next(script)
+        return posterior, {"rate": torch.full_like(scores["rate"], rate * r_bar),
+                           "image_rate": torch.full_like(scores["rate"], image)}  # fmt: skip
+
+    policy.observation_scores = scripted
+    policy.reset()
+    obs = make_batch(policy.config, batch_size=1, with_action=False)
+    just_stopped, resumed = [], []
+    for step in range(6):
+        policy.select_action(obs)
+        just_stopped += [step] if bool(policy.last_step.just_stopped[0]) else []
+        resumed += [step] if bool(policy.last_step.resumed[0]) else []
+    assert just_stopped == [1, 4] and resumed == [3, 5]  # the image rate alone at 1, the rate alone at 2 and 4
+    assert set(asked) == {None}  # every score is computed when an OR needs them
+
+
+def test_the_model_card_says_the_stop_also_fires_on_an_or_partner_and_at_what_level():
+    from lerobot_vib.model_card import describe_calibration
+
+    config = make_config(uncertainty_score="rate")
+    c = config.calibration
+    c.rate_mean, c.gamma, c.gamma_score, c.gamma_method, c.conformal_alpha = 1.0, 2.0, "rate", "conformal_rollouts", 0.1
+    c.or_gammas, c.or_window, c.rollout_seeds = {"state_rate": 1.7}, 5, list(range(40))
+    text = describe_calibration(config, 1.0)
+    assert "also fires when `state_rate` (its mean over 5 steps) above 1.7" in text and "alpha / 2" in text
