@@ -7,8 +7,8 @@ Per scored VIB row whose cells hold every score (`--calibrate=true`):
    (failure.candidate_monitors and failure.or_candidates over the scores the cells hold: each score alone, an
    AND with constant partners, an OR with a constant partner) is calibrated on that seed's successful clean
    ones at `alpha` and judged on all of them, averaged over the seeds. What ships (`ship_rule`): among the
-   monitors that meet the TPR and TNR targets on validation, the one that alarms earliest in failures; with
-   none meeting them, the best balanced accuracy. Balanced accuracy alone does not ask when a monitor alarms,
+   monitors that meet the TPR, TNR and benign-stop targets on validation, the one that alarms earliest in
+   failures; with none meeting them, the best balanced accuracy. Balanced accuracy alone does not ask when a monitor alarms,
    and a robot's user asks both whether an episode will fail and how early that is known.
 2. test: the shipped monitor, each seed calibrated on its own validation successes, judged on every test
    cell: per condition, pooled over conditions and seeds, and at every level of `failure_alphas` (the
@@ -190,8 +190,8 @@ def earliest_meeting_targets(ranking: list[dict]) -> Monitor | AnyOf | None:
 
 def ship_rule(ranking: list[dict]) -> tuple[Monitor | AnyOf, str]:
     """The monitor that ships, from `choose_monitor`'s rows (best balanced accuracy first), and the rule that
-    picked it: the earliest of those meeting the TPR and TNR targets on validation, else the best balanced
-    accuracy."""
+    picked it: the earliest of those meeting the TPR, TNR and benign-stop targets on validation, else the best
+    balanced accuracy."""
     earliest = earliest_meeting_targets(ranking)
     if earliest is not None:
         return earliest, EARLIEST
