@@ -8,8 +8,8 @@ Per scored VIB row whose cells hold every score (`--calibrate=true`):
    AND with constant partners, an OR with a constant partner) is calibrated on that seed's successful clean
    ones at `alpha` and judged on all of them, averaged over the seeds. What ships (`ship_rule`): among the
    monitors that meet the TPR, TNR and benign-stop targets on validation, the one that alarms earliest in
-   failures; with none meeting them, the best balanced accuracy. Balanced accuracy alone does not ask when a monitor alarms,
-   and a robot's user asks both whether an episode will fail and how early that is known.
+   failures; with none meeting them, the best balanced accuracy. Balanced accuracy alone does not ask when a
+   monitor alarms, and a robot's user asks both whether an episode will fail and how early that is known.
 2. test: the shipped monitor, each seed calibrated on its own validation successes, judged on every test
    cell: per condition, pooled over conditions and seeds, and at every level of `failure_alphas` (the
    TPR-against-TNR curve). Beside it, for reference: each score alone at one step with a constant threshold
