@@ -434,22 +434,24 @@ def test_a_stop_on_a_windowed_u_ignores_a_one_frame_spike_and_catches_a_sustaine
         assert float(policy.last_step.u[0]) == pytest.approx(2.6)  # Eq. 6 still reads u itself
 
 
-def test_an_and_stop_fires_only_while_both_scores_are_above_and_ends_when_either_falls():
-    """FIPER's AND in the policy: the rate (gamma 2) and the image rate (its own threshold 2) must both be up."""
+def run_two_score_stop(combination: str, script: list[tuple[float, float]]) -> tuple[list, list, list, set]:
+    """A policy whose stop reads the rate (gamma 2) and the image rate (its own threshold 2), combined by
+    `combination` ("and_gammas" or "or_gammas"), on a scripted (u of the rate, image rate) per step. Returns the
+    steps it stopped and resumed at, the stop value per step, and which scores each step asked for."""
     config = make_config(uncertainty_score="rate")
     policy = with_rate_statistics(VIBPolicy(config))
     c = policy.config.calibration
-    c.gamma, c.gamma_score, c.gamma_method, c.and_gammas = 2.0, "rate", "conformal_rollouts", {"image_rate": 2.0}
+    c.gamma, c.gamma_score, c.gamma_method = 2.0, "rate", "conformal_rollouts"
+    setattr(c, combination, {"image_rate": 2.0})
     c.score_means = {"image_rate": 1.0}
     policy.config.safety.enabled, policy.config.safety.resume_steps = True, 1
-    r_bar, real = policy.rate_mean(), policy.observation_scores
-    script = iter([(3.0, 1.0), (3.0, 3.0), (3.0, 3.0), (1.0, 3.0), (3.0, 3.0), (3.0, 1.0)])
+    r_bar, real, steps = policy.rate_mean(), policy.observation_scores, iter(script)
     asked = []
 
     def scripted(batch, wanted=None):
         asked.append(wanted)
         posterior, scores = real(batch, wanted)
-        rate, image = next(script)
+        rate, image = next(steps)
         return posterior, {"rate": torch.full_like(scores["rate"], rate * r_bar),
                            "image_rate": torch.full_like(scores["rate"], image)}  # fmt: skip
 
@@ -457,47 +459,30 @@ def test_an_and_stop_fires_only_while_both_scores_are_above_and_ends_when_either
     policy.reset()
     obs = make_batch(policy.config, batch_size=1, with_action=False)
     just_stopped, resumed, values = [], [], []
-    for step in range(6):
+    for step in range(len(script)):
         policy.select_action(obs)
         values.append(float(policy.last_step.stop_value[0]))
-        if bool(policy.last_step.just_stopped[0]):
-            just_stopped.append(step)
-        if bool(policy.last_step.resumed[0]):
-            resumed.append(step)
+        just_stopped += [step] if bool(policy.last_step.just_stopped[0]) else []
+        resumed += [step] if bool(policy.last_step.resumed[0]) else []
+    return just_stopped, resumed, values, set(asked)
+
+
+def test_an_and_stop_fires_only_while_both_scores_are_above_and_ends_when_either_falls():
+    """FIPER's AND in the policy: the rate (gamma 2) and the image rate (its own threshold 2) must both be up."""
+    script = [(3.0, 1.0), (3.0, 3.0), (3.0, 3.0), (1.0, 3.0), (3.0, 3.0), (3.0, 1.0)]
+    just_stopped, resumed, values, asked = run_two_score_stop("and_gammas", script)
     assert just_stopped == [1, 4] and resumed == [3, 5]  # the rate fell at 3, the image rate at 5
     assert values[0] == pytest.approx(1.0) and values[3] == pytest.approx(1.0)  # 2 * min(3/2, 1/2)
-    assert set(asked) == {None}  # every score is computed when an AND needs them
+    assert asked == {None}  # every score is computed when an AND needs them
 
 
 def test_an_or_stop_fires_while_either_score_is_above_and_ends_only_when_both_have_fallen():
     """The OR in the policy: the rate (gamma 2) or the image rate (its own threshold 2) stops the arm."""
-    config = make_config(uncertainty_score="rate")
-    policy = with_rate_statistics(VIBPolicy(config))
-    c = policy.config.calibration
-    c.gamma, c.gamma_score, c.gamma_method, c.or_gammas = 2.0, "rate", "conformal_rollouts", {"image_rate": 2.0}
-    c.score_means = {"image_rate": 1.0}
-    policy.config.safety.enabled, policy.config.safety.resume_steps = True, 1
-    r_bar, real = policy.rate_mean(), policy.observation_scores
-    script = iter([(1.0, 1.0), (1.0, 3.0), (3.0, 1.0), (1.0, 1.0), (3.0, 1.0), (1.0, 1.0)])
-    asked = []
-
-    def scripted(batch, wanted=None):
-        asked.append(wanted)
-        posterior, scores = real(batch, wanted)
-        rate, image = next(script)
-        return posterior, {"rate": torch.full_like(scores["rate"], rate * r_bar),
-                           "image_rate": torch.full_like(scores["rate"], image)}  # fmt: skip
-
-    policy.observation_scores = scripted
-    policy.reset()
-    obs = make_batch(policy.config, batch_size=1, with_action=False)
-    just_stopped, resumed = [], []
-    for step in range(6):
-        policy.select_action(obs)
-        just_stopped += [step] if bool(policy.last_step.just_stopped[0]) else []
-        resumed += [step] if bool(policy.last_step.resumed[0]) else []
+    script = [(1.0, 1.0), (1.0, 3.0), (3.0, 1.0), (1.0, 1.0), (3.0, 1.0), (1.0, 1.0)]
+    just_stopped, resumed, values, asked = run_two_score_stop("or_gammas", script)
     assert just_stopped == [1, 4] and resumed == [3, 5]  # the image rate alone at 1, the rate alone at 2 and 4
-    assert set(asked) == {None}  # every score is computed when an OR needs them
+    assert values[1] == pytest.approx(3.0)  # 2 * max(1/2, 3/2)
+    assert asked == {None}  # every score is computed when an OR needs them
 
 
 def test_the_model_card_says_the_stop_also_fires_on_an_or_partner_and_at_what_level():
