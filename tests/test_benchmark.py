@@ -405,6 +405,39 @@ def test_queue_rows_keep_half_a_chunk_when_the_preset_ensembles():
     assert vib_with(policy, "uncertainty").config.n_action_steps == 1
 
 
+def test_a_sample_run_time_decodes_a_posterior_sample_and_is_offered_to_vib_rows_only(tmp_path):
+    """ "act:0.3+sample": the VIB network decodes a posterior sample (its training input) at every step, so
+    two calls on one observation differ; the posterior mean's do not, and an ACT row never gets the suffix."""
+    from helpers import make_batch, make_config
+    from lerobot_vib.modeling_vib import VIBPolicy
+    from lerobot_vib.variants import build_variant, parse_runtime, split_runtime
+
+    assert split_runtime("act:0.3+sample") == ("act:0.3", True) and split_runtime("queue") == ("queue", False)
+    assert parse_runtime("act:0.3+sample") == ("act", 0.3)
+    torch.manual_seed(0)
+    network = VIBPolicy(make_config(encoder="tokens", chunk_size=4, n_action_steps=1))
+    obs = make_batch(network.config, with_action=False)
+    chunks = {}
+    for runtime in ("act:0.3", "act:0.3+sample"):
+        policy = build_variant("vib_tokens", {"vib_tokens": network}, runtime=runtime)
+        chunks[runtime] = [policy.predict_action_chunk(obs) for _ in range(2)]
+    assert torch.equal(*chunks["act:0.3"])
+    assert not torch.allclose(*chunks["act:0.3+sample"])
+    assert not network.config.sample_latent_at_inference  # the shared network is not changed
+
+    cfg = BenchmarkConfig(
+        dataset=DatasetConfig(repo_id="x"),
+        env=ArmGraspEnvConfig(),
+        output_dir=tmp_path,
+        variants=["act_chosen", "vib_tokens"],
+        runtimes=["act:0.3", "act:0.3+sample"],
+    )
+    assert cfg.validated("vib_tokens") == ["act:0.3", "act:0.3+sample"]
+    assert cfg.validated("act_chosen") == ["act:0.3"]
+    with pytest.raises(ValueError, match="chunks come from ACT"):
+        build_variant("act_chosen", {"act": None}, runtime="act:0.3+sample")
+
+
 def test_wall_time_counts_every_invocation_a_killed_one_included(tmp_path):
     import signal
     import subprocess

@@ -223,30 +223,35 @@ def test_a_failure_moment_is_found_in_a_scripted_missed_grasp_and_never_in_a_scr
     assert not success and missed and 50 <= missed[0] <= 60  # while the plan closes the gripper (steps 48-58)
 
 
-def test_the_report_ships_the_validation_choice_and_states_its_test_numbers_in_one_line(tmp_path):
+def _scripted_cell(rng, condition: str, n: int, fail_every: int, seed0: int) -> dict:
+    """A benchmark cell whose score "b" jumps to 4 after step 20 in the failed episodes, "a" is noise."""
+    success = [i % fail_every != 0 for i in range(n)]
+    b = [np.r_[np.ones(20), np.full(30, 1.0 if ok else 4.0)] + 0.05 * rng.random(50) for ok in success]
+    return {
+        "condition": condition,
+        "seeds": list(range(seed0, seed0 + n)),
+        "success": success,
+        "scores": {"a": [(1 + 0.1 * rng.random(50)).tolist() for _ in success], "b": [x.tolist() for x in b]},
+        "grasp_missed_at": [None if ok else 45 for ok in success],
+    }
+
+
+def _report_config(train_seeds: list[int]):
     from types import SimpleNamespace
 
+    return SimpleNamespace(variants=["vib_tokens"], train_seeds=train_seeds, conditions=["normal", "gaussian"],
+                           alpha=0.1, failure_alphas=[0.1, 0.3], rnd_steps=50)  # fmt: skip
+
+
+def test_the_report_ships_the_validation_choice_and_states_its_test_numbers_in_one_line(tmp_path):
     from lerobot_vib.scripts import failure_report
 
     rng = np.random.default_rng(3)
-
-    def cell(condition: str, n: int, fail_every: int, seed0: int) -> dict:
-        success = [i % fail_every != 0 for i in range(n)]
-        b = [np.r_[np.ones(20), np.full(30, 1.0 if ok else 4.0)] + 0.05 * rng.random(50) for ok in success]
-        return {
-            "condition": condition,
-            "seeds": list(range(seed0, seed0 + n)),
-            "success": success,
-            "scores": {"a": [(1 + 0.1 * rng.random(50)).tolist() for _ in success], "b": [x.tolist() for x in b]},
-            "grasp_missed_at": [None if ok else 45 for ok in success],
-        }
-
-    cfg = SimpleNamespace(variants=["vib_tokens"], train_seeds=[1000], conditions=["normal", "gaussian"],
-                          alpha=0.1, failure_alphas=[0.1, 0.3], rnd_steps=50)  # fmt: skip
+    cfg = _report_config([1000])
     cells = {
-        ("vib_tokens", "validation", 1000, "act:0.3"): cell("validation", 40, 4, 400_000),
-        ("vib_tokens", "normal", 1000, None): cell("normal", 20, 3, 600_000),
-        ("vib_tokens", "gaussian", 1000, None): cell("gaussian", 20, 2, 600_000),
+        ("vib_tokens", "validation", 1000, "act:0.3"): _scripted_cell(rng, "validation", 40, 4, 400_000),
+        ("vib_tokens", "normal", 1000, None): _scripted_cell(rng, "normal", 20, 3, 600_000),
+        ("vib_tokens", "gaussian", 1000, None): _scripted_cell(rng, "gaussian", 20, 2, 600_000),
     }
     result = failure_report.failure_prediction(cfg, cells, lambda v, s: "act:0.3")["vib_tokens"]
     assert result["shipped"]["monitor"]["scores"] == ["b"]
@@ -256,6 +261,33 @@ def test_the_report_ships_the_validation_choice_and_states_its_test_numbers_in_o
     assert lines[3] == failure_report.shipped_line(result) and lines[3].startswith("shipped monitor: TPR 1.00")
     assert any(line.startswith("| FIPER (Römer") for line in lines)
     assert failure_report.plot({"vib_tokens": result}, tmp_path, {}) == ["failure_roc.png"]
+
+
+def test_a_seed_too_weak_to_calibrate_is_set_aside_by_name_and_the_others_still_ship_a_monitor():
+    from lerobot_vib.scripts import failure_report
+
+    rng = np.random.default_rng(4)
+    cfg = _report_config([1000, 2000])
+    cells = {}
+    # seed 2000 solves 8 of 40 clean validation episodes: a threshold at alpha = 0.1 needs 9 successes
+    for seed, fail_every in ((1000, 4), (2000, 1)):
+        validation = _scripted_cell(rng, "validation", 40, fail_every, 400_000)
+        if seed == 2000:
+            validation["success"] = [i < 8 for i in range(40)]
+        cells[("vib_tokens", "validation", seed, "act:0.3")] = validation
+        cells[("vib_tokens", "normal", seed, None)] = _scripted_cell(rng, "normal", 20, 3, 600_000)
+    result = failure_report.failure_prediction(cfg, cells, lambda v, s: "act:0.3")["vib_tokens"]
+    assert result["uncalibrated_seeds"] == {"2000": {"successes": 8, "clean": 40, "needed": 9}}
+    assert list(result["validation_episodes"]) == ["1000"] and list(result["test"]["per_seed"]) == ["1000"]
+    assert result["test"]["pooled"]["n_failed"] == 7  # seed 1000's test failures alone
+    lines = failure_report.markdown(cfg, {"vib_tokens": result}, {})
+    assert lines[5].startswith("Training seeds 1000; set aside: training seed 2000 solved 8 of 40")
+
+    # with no seed left, the report says which seeds and why, and ships nothing
+    alone = {k: v for k, v in cells.items() if k[2] == 2000}
+    none_left = failure_report.failure_prediction(_report_config([2000]), alone, lambda v, s: "act:0.3")
+    assert "training seed 2000 solved 8 of 40" in none_left["vib_tokens"]["error"]
+    assert "shipped" not in none_left["vib_tokens"]
 
 
 def test_the_earliest_monitor_is_taken_only_among_those_meeting_the_tpr_and_tnr_targets_on_validation():

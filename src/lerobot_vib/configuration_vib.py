@@ -353,7 +353,9 @@ class VIBConfig(PreTrainedConfig):
         d_token: Size of one state token. The fused feature has `n_state_tokens * d_token` elements.
         latent_dim: Size D of each token's Gaussian latent z_k; the rate sums the KL over these dims.
         sample_latent_at_inference: If True, inference decodes a posterior sample instead of the posterior
-            mean. Training always samples (reparameterization trick).
+            mean. Training always samples (reparameterization trick), so where the posterior stays wide (the
+            token network's image cells) the mean is an input the decoder never saw; choose on validation
+            episodes (docs/model.md).
         dim_model: Width of the action transformer.
         n_heads: Attention heads of the action transformer.
         dim_feedforward: Feed-forward width of the action transformer.

@@ -122,11 +122,31 @@ TOKEN_COMPARISON = (
 _RUNTIME_MODES = {"queue": "none", "act": "act", "eq6": "uncertainty"}
 
 
+SAMPLE = "+sample"  # a run time's suffix: a VIB network decodes a posterior sample, not the posterior mean
+
+
+def split_runtime(spec: str) -> tuple[str, bool]:
+    """ "act:0.3+sample" -> ("act:0.3", True): the run time proper, and whether a VIB network decodes a posterior
+    sample at every step (its training input) instead of the posterior mean (config.sample_latent_at_inference).
+    """
+    if spec.endswith(SAMPLE):
+        return spec.removesuffix(SAMPLE), True
+    return spec, False
+
+
+def samples(spec: str) -> bool:
+    """Whether run time `spec` decodes posterior samples (`split_runtime`)."""
+    return split_runtime(spec)[1]
+
+
 def parse_runtime(spec: str) -> tuple[str, float]:
-    """ "queue", "act:<m>" (ACT's ensembling) or "eq6:<m>" -> (runtime.py's mode, m)."""
-    mode, _, coeff = spec.partition(":")
+    """ "queue", "act:<m>" (ACT's ensembling) or "eq6:<m>", each with an optional "+sample" (`split_runtime`)
+    -> (runtime.py's mode, m)."""
+    mode, _, coeff = split_runtime(spec)[0].partition(":")
     if mode not in _RUNTIME_MODES or (mode == "queue") != (coeff == ""):
-        raise ValueError(f"A run time is 'queue', 'act:<m>' or 'eq6:<m>' (m >= 0), got {spec!r}.")
+        raise ValueError(
+            f"A run time is 'queue', 'act:<m>' or 'eq6:<m>' (m >= 0), each optionally with '{SAMPLE}', got {spec!r}."
+        )
     if mode == "queue":
         return "none", ENSEMBLE_COEFF
     try:
@@ -237,9 +257,11 @@ class ScoredChunkPolicy(PreTrainedPolicy):
         return action
 
 
-def vib_with(vib: VIBPolicy, ensemble: str, coeff: float = ENSEMBLE_COEFF) -> VIBPolicy:
-    """The VIB checkpoint run with another ensembling mode and m (its own `select_action`), the stop off."""
+def vib_with(vib: VIBPolicy, ensemble: str, coeff: float = ENSEMBLE_COEFF, sample: bool = False) -> VIBPolicy:
+    """The VIB checkpoint run with another ensembling mode and m (its own `select_action`), the stop off;
+    `sample`: it decodes a posterior sample at every step instead of the posterior mean."""
     config = copy.deepcopy(vib.config)
+    config.sample_latent_at_inference = sample
     if ensemble == "none":
         ensembles = config.temporal_ensemble != "none"
         config.n_action_steps = queue_steps(config.chunk_size, config.n_action_steps, ensembles)
@@ -284,6 +306,9 @@ def build_variant(
     if runtime is None:
         runtime = v.runtime()
     ensemble, coeff = parse_runtime(runtime)
+    sample = samples(runtime)
+    if sample and NETWORKS[v.chunks] != "vib":
+        raise ValueError(f"Run time {runtime!r} samples a VIB posterior; {v.label}'s chunks come from ACT.")
     needs = {**networks, "rnd": rnd}
     for model in {v.chunks, *([v.score] if v.score else [])}:
         if needs.get(model) is None:
@@ -292,7 +317,10 @@ def build_variant(
     if v.score is None:
         return act_with(chunk_net, ensemble, coeff)
     if v.score == v.chunks:
-        return vib_with(chunk_net, ensemble, coeff)
-    chunk_policy = vib_with(chunk_net, "none") if NETWORKS[v.chunks] == "vib" else act_with(chunk_net, "none")
+        return vib_with(chunk_net, ensemble, coeff, sample)
+    if NETWORKS[v.chunks] == "vib":
+        chunk_policy = vib_with(chunk_net, "none", sample=sample)
+    else:
+        chunk_policy = act_with(chunk_net, "none")
     score = rnd_score(rnd) if v.score == "rnd" else vib_score(networks[v.score])
     return ScoredChunkPolicy(chunk_policy, score, ensemble, coeff)

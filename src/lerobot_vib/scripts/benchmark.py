@@ -81,6 +81,7 @@ from ..variants import (
     build_variant,
     parse_runtime,
     queue_steps,
+    samples,
 )
 from .benchmark_report import runtime_of, write_report
 from .calibrate import _write, calibrate, gamma_from_rollouts
@@ -163,8 +164,9 @@ class BenchmarkConfig:
         on them, and the thresholds of a scored row are set on them.
     runtimes: The run times a comparison row chooses from on validation (variants.parse_runtime): "queue"
         (the checkpoint's action queue; half a chunk when the preset ensembles), "act:<m>" (ACT's temporal
-        ensembling), "eq6:<m>" (Eq. 6, scored rows only). The most validation successes wins; a tie goes to
-        the one listed first.
+        ensembling), "eq6:<m>" (Eq. 6, scored rows only), each with an optional "+sample" (a VIB network
+        decodes a posterior sample at every step, its training input, instead of the posterior mean; ACT rows
+        skip these). The most validation successes wins; a tie goes to the one listed first.
     preset: The VIB train config (`lerobot-train --config_path`); ACT copies its architecture and recipe.
     steps: Training steps of every network.
     save_freq: Steps between saved training checkpoints: an interrupted training resumes from the last one.
@@ -322,8 +324,8 @@ class BenchmarkConfig:
         """The run times a row is rolled out with on validation: its candidates, or its own run time when it
         is scored (its thresholds are set there), or none."""
         v = VARIANTS[variant]
-        if v.ensemble == CHOSEN:
-            return list(self.runtimes)
+        if v.ensemble == CHOSEN:  # a "+sample" run time is a VIB network's only
+            return [rt for rt in self.runtimes if NETWORKS[v.chunks] == "vib" or not samples(rt)]
         return [v.runtime()] if v.score is not None else []
 
 
@@ -658,10 +660,11 @@ def choose_runtime(cfg: BenchmarkConfig, variant: str, seed: int) -> dict:
     if v.ensemble != CHOSEN:
         return {"runtime": v.runtime(), "chosen_on": None}
     successes = {}
-    for rt in cfg.runtimes:
+    candidates = cfg.validated(variant)
+    for rt in candidates:
         cell = json.loads(cell_path(cfg, variant, VALIDATION, seed, rt).read_text())
         successes[rt] = [sum(cell["success"]), len(cell["success"])]
-    best = max(cfg.runtimes, key=lambda rt: (successes[rt][0], -cfg.runtimes.index(rt)))
+    best = max(candidates, key=lambda rt: (successes[rt][0], -candidates.index(rt)))
     return {"runtime": best, "chosen_on": successes}
 
 

@@ -386,7 +386,10 @@ def record_frames(policy: VIBPolicy, preprocessor, batches) -> FrameRecords:
         keep["image"].append(None if parts.image is None else parts.image.cpu())
         keep["state"].append(None if parts.state is None else parts.state.cpu())
         keep["rnd"].append((network.embedding(posterior) if tokens else network.rnd_embedding(parts, obs)).cpu())
-        keep["chunk"].append(network.decode(posterior.mean).cpu())
+        # the chunks it acts on: with sample_latent_at_inference a posterior sample's, so that chunk disagreement's
+        # statistics include the sampling noise the policy's own chunks carry
+        z = posterior.sample() if policy.config.sample_latent_at_inference else posterior.mean
+        keep["chunk"].append(network.decode(z).cpu())
         keep["token_rates"].append(None if token_rates is None else token_rates.cpu())
     if not keep["rate"]:
         raise ValueError("No frames to calibrate on.")

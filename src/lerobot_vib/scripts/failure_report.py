@@ -11,9 +11,10 @@ Per scored VIB row whose cells hold every score (`--calibrate=true`):
    failures; with none meeting them, the best balanced accuracy. Balanced accuracy alone does not ask when a
    monitor alarms, and a robot's user asks both whether an episode will fail and how early that is known.
 2. test: the shipped monitor, each seed calibrated on its own validation successes, judged on every test
-   cell: per condition, pooled over conditions and seeds, and at every level of `failure_alphas` (the
-   TPR-against-TNR curve). Beside it, for reference: each score alone at one step with a constant threshold
-   (the stop as it is), and the best FIPER-like AND (embedding RND and chunk disagreement) on validation.
+   cell: per condition, per training seed, pooled over conditions and seeds, and at every level of
+   `failure_alphas` (the TPR-against-TNR curve). Beside it, for reference: each score alone at one step with
+   a constant threshold (the stop as it is), and the best FIPER-like AND (embedding RND and chunk
+   disagreement) on validation.
 
 An RND on the policy's observation embedding is measured fitted two ways: on the training frames
 ("embedding_rnd", as `lerobot-vib-calibrate` fits it) and on clean rollouts ("embedding_rnd_rollouts", FIPER's
@@ -21,6 +22,11 @@ way). The second is fitted per training seed on every other successful clean val
 run time (the embeddings of those seeds' successful rollouts at every validation run time: the cells'
 `*.embeddings.safetensors`); the other successes set its thresholds, and the rollouts it was fitted on neither
 set nor judge them (failure.Episode.fitted_on). Its u is e over its mean on the frames it was fitted on.
+
+A training seed whose policy succeeded in fewer clean validation rollouts than a conformal threshold at
+`alpha` needs is set aside, by name and with its count: `lerobot-vib-calibrate --rollouts` refuses such a
+policy, so no stop ships with it, and its failures are not the monitor's to predict. The numbers then cover
+the other seeds, and say so.
 
 Nothing on the test seeds chooses anything.
 """
@@ -33,6 +39,7 @@ from typing import Any
 
 import numpy as np
 
+from ..calibration import conformal_min_scores
 from ..failure import (
     CLEAN,
     AnyOf,
@@ -137,6 +144,11 @@ def _test_metrics(monitor: Monitor | AnyOf, validation: dict, test: dict, alpha:
     conditions = sorted({c for by_condition in test.values() for c in by_condition})
     out: dict[str, Any] = {"per_condition": {}, "thresholds": {str(s): c.as_dict() for s, c in calibrated.items()}}
     pooled, benign = [], []
+    out["per_seed"] = {
+        str(s): _pool([evaluate(calibrated[s], eps) for eps in by_c.values()]).as_dict()
+        for s, by_c in test.items()
+        if s in calibrated and by_c
+    }
     for condition in conditions:
         per = [
             (calibrated[s], eps)
@@ -155,6 +167,32 @@ def _test_metrics(monitor: Monitor | AnyOf, validation: dict, test: dict, alpha:
     out["benign_stopped"] = b.alarmed_succeeded / b.n_succeeded if b.n_succeeded else None
     out["benign_successes"] = b.n_succeeded
     return out
+
+
+def uncalibrated_seeds(validation: dict, alpha: float) -> dict[str, dict]:
+    """The training seeds whose successful clean validation rollouts are too few for any conformal threshold
+    at `alpha` (failure.calibrate_monitor's minimum for one score and a constant threshold), with the counts
+    that say why."""
+    needed = conformal_min_scores(alpha)
+    out = {}
+    for seed, episodes in validation.items():
+        successes = len(calibration_episodes(episodes))
+        if successes < needed:
+            clean = sum(e.condition == CLEAN for e in episodes)
+            out[str(seed)] = {"successes": successes, "clean": clean, "needed": needed}
+    return out
+
+
+def set_aside_text(uncalibrated: dict[str, dict], alpha: float) -> str:
+    """One sentence on the seeds `uncalibrated_seeds` set aside."""
+    return (
+        "; ".join(
+            f"training seed {s} solved {c['successes']} of {c['clean']} clean validation episodes, and a threshold "
+            f"at alpha = {alpha} needs {c['needed']} successes"
+            for s, c in uncalibrated.items()
+        )
+        + " (lerobot-vib-calibrate --rollouts refuses such a policy: no stop ships with it)"
+    )
 
 
 def _pool(metrics: list[FailureMetrics]) -> FailureMetrics:
@@ -223,6 +261,15 @@ def failure_prediction(cfg, cells: dict, runtime_of) -> dict:
             }
         if not validation or not any(test.values()):
             continue
+        uncalibrated = uncalibrated_seeds(validation, cfg.alpha)
+        validation = {s: eps for s, eps in validation.items() if str(s) not in uncalibrated}
+        test = {s: by_c for s, by_c in test.items() if str(s) not in uncalibrated}
+        if not validation:
+            out[variant] = {
+                "error": "no monitor could be calibrated: " + set_aside_text(uncalibrated, cfg.alpha),
+                "uncalibrated_seeds": uncalibrated,
+            }
+            continue
         names = sorted(set.intersection(*[set(e.scores) for eps in validation.values() for e in eps]))
         candidates = [*candidate_monitors(names), *or_candidates(names)]
         # The policy's stop runs any candidate with a constant threshold on its partners (an AND's or an OR's
@@ -236,7 +283,10 @@ def failure_prediction(cfg, cells: dict, runtime_of) -> dict:
         ]
         best, ranking = choose_monitor(runnable, validation, cfg.alpha, benign=BENIGN)
         if best is None:
-            out[variant] = {"error": "no monitor could be calibrated on the validation rollouts' successes"}
+            out[variant] = {
+                "error": "no monitor could be calibrated on the validation rollouts' successes",
+                "uncalibrated_seeds": uncalibrated,
+            }
             continue
         shipped, rule = ship_rule(ranking)
         references = {f"{n} alone": Monitor((n,)) for n in names if Monitor((n,)) != shipped}
@@ -268,6 +318,7 @@ def failure_prediction(cfg, cells: dict, runtime_of) -> dict:
             "rollout_rnd_fit_episodes": {
                 str(s): sum(ROLLOUT_RND in e.fitted_on for e in eps) for s, eps in validation.items()
             },
+            "uncalibrated_seeds": uncalibrated,
             "candidates": len(runnable),
             "ranking": [{**r, "monitor": r["monitor"].as_dict(), "name": r["monitor"].name} for r in ranking[:15]],
             "shipped": {
@@ -336,10 +387,23 @@ def markdown(cfg, failure: dict, labels: dict[str, str]) -> list[str]:
     lines: list[str] = []
     for variant, result in failure.items():
         lines += ["", f"## Failure prediction: {labels.get(variant, variant)}", ""]
+        set_aside = result.get("uncalibrated_seeds") or {}
         if "error" in result:
             lines += [result["error"] + "."]
+            if set_aside and not result["error"].startswith("no monitor could be calibrated: "):
+                lines += ["", "Set aside: " + set_aside_text(set_aside, cfg.alpha) + "."]
             continue
         lines += [shipped_line(result), ""]
+        seeds = ", ".join(result["validation_episodes"])
+        lines += [
+            f"Training seeds {seeds}"
+            + (
+                f"; set aside: {set_aside_text(set_aside, cfg.alpha)}. Every number below covers the other seeds."
+                if set_aside
+                else "."
+            ),
+            "",
+        ]
         lines += [ship_command(monitor_from_dict(result["shipped"]["monitor"]), cfg.alpha), ""]
         test = result["test"] or {}
         pooled = test.get("pooled") or {}
@@ -383,6 +447,18 @@ def markdown(cfg, failure: dict, labels: dict[str, str]) -> list[str]:
         lines += [
             "",
             f"Successful noise and colour-jitter episodes stopped: {_f(benign)} of {test.get('benign_successes', 0)}.",
+            "",
+            "Per training seed, pooled over conditions (each seed's thresholds from its own validation successes):",
+            "",
+            "| training seed | failed / succeeded | TPR | TNR | balanced accuracy | detection time | "
+            "median lead time (steps, n) |",
+            "| --- | --- | --- | --- | --- | --- | --- |",
+            *[
+                f"| {s} | {m['n_failed']} / {m['n_succeeded']} | {_f(m['tpr'])} | {_f(m['tnr'])} | "
+                f"{_f(m['balanced_accuracy'])} | {_f(m['detection_time'])} | "
+                f"{_f(m['median_lead_time'], '.0f')} ({m['n_lead_times']}) |"
+                for s, m in test.get("per_seed", {}).items()
+            ],
             "",
             "Against the published figures (their tasks and policies, not this arm, so a frame of reference rather "
             "than a like-for-like comparison), and the targets:",
