@@ -229,3 +229,16 @@ def test_the_default_score_reads_the_camera_when_there_is_one():
 def test_a_camera_score_without_a_camera_is_refused():
     with pytest.raises(ValueError, match="no camera"):
         VIBPolicy(make_config(uncertainty_score="low_image_rate", cameras={}))
+
+
+def test_calibration_decodes_the_chunks_the_policy_acts_on_a_sample_when_it_samples():
+    """Chunk disagreement's training statistics come from the chunks the policy will decode: the posterior mean's
+    by default (the same on every pass), a posterior sample's with `sample_latent_at_inference`."""
+    config = make_config(encoder="tokens")
+    policy = VIBPolicy(config)
+    batches = dataset_batches(config, n_batches=2)
+    torch.manual_seed(0)
+    assert torch.equal(record_frames(policy, identity, batches).chunks, record_frames(policy, identity, batches).chunks)
+    policy.config.sample_latent_at_inference = True
+    first, second = (record_frames(policy, identity, batches).chunks for _ in range(2))
+    assert not torch.allclose(first, second)
