@@ -27,7 +27,6 @@ from lerobot.policies.factory import make_pre_post_processors
 from lerobot.utils.constants import ACTION
 from report import cpu_name
 
-from lerobot_vib.bottleneck import Posterior
 from lerobot_vib.modeling_vib import VIBPolicy
 
 
@@ -63,7 +62,7 @@ def measure(policy: VIBPolicy, pre, batch: dict, draws: int) -> dict[str, float]
 
     out["L1, mean z"] = l1(posterior.mean)
     torch.manual_seed(0)
-    out["L1, sampled z"] = sum(l1(Posterior(posterior.mean, posterior.logvar).sample()) for _ in range(draws)) / draws
+    out["L1, sampled z"] = sum(l1(posterior.sample()) for _ in range(draws)) / draws
     return out
 
 
