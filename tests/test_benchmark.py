@@ -492,6 +492,14 @@ def test_the_token_comparison_trains_the_token_network_beside_the_same_act_rows_
     assert "--policy.encoder=tokens" in beta0 and "--policy.beta=0" in beta0
     assert not any("encoder" in a for a in pooled)
     assert cfg.episodes("vib_tokens", "normal") == cfg.n_episodes
+    # the narrow start is the token preset with one flag more, and a row of its own when asked for
+    narrow = benchmark.train_command("vib_tokens_narrow", cfg, tmp_path / "t", seed=1000)
+    assert [a for a in narrow if "posterior_logvar_init" not in a] == tokens
+    assert "--policy.posterior_logvar_init=-6.0" in narrow
+    asked = BenchmarkConfig(
+        dataset=DatasetConfig(repo_id="x"), env=ArmGraspEnvConfig(), output_dir=tmp_path, variants=["vib_tokens_narrow"]
+    )
+    assert asked.networks() == ["vib_tokens_narrow"]
 
 
 def test_comparison_rows_train_their_own_networks_and_run_the_run_time_they_are_given(tmp_path):

@@ -1,10 +1,12 @@
 """The rate is the closed-form KL between each token's posterior and the learnable marginal."""
 
+import pytest
 import torch
 from torch.distributions import Normal, kl_divergence
 
 from helpers import make_batch, make_config
 from lerobot_vib.bottleneck import LOGVAR_MAX, LOGVAR_MIN, GaussianBottleneck, Posterior
+from lerobot_vib.configuration_vib import VIBConfigError
 from lerobot_vib.modeling_vib import VIBPolicy
 
 
@@ -76,3 +78,28 @@ def test_log_variance_is_clamped_so_the_rate_stays_finite():
     posterior = bottleneck.posterior(torch.ones(1, 1, 2))
     assert posterior.logvar.max() <= LOGVAR_MAX and posterior.logvar.min() >= LOGVAR_MIN
     assert torch.isfinite(bottleneck.rate(posterior)).all()
+
+
+def test_a_head_started_narrow_gives_every_token_sigma_near_its_init_and_the_default_head_is_a_plain_linear():
+    torch.manual_seed(0)
+    tokens = torch.randn(8, 5, 16)
+    narrow = GaussianBottleneck(16, 4, logvar_init=-6.0)
+    sigma = torch.exp(0.5 * narrow.posterior(tokens).logvar)
+    assert sigma.min() > 0.02 and sigma.max() < 0.15  # exp(-3) = 0.05, spread by the head's small weights
+    torch.manual_seed(1)
+    default = GaussianBottleneck(16, 4)
+    torch.manual_seed(1)
+    plain = torch.nn.Linear(16, 8)
+    assert torch.equal(default.posterior_head.weight, plain.weight)
+    assert torch.equal(default.posterior_head.bias, plain.bias)  # checkpoints trained before the field: unchanged
+
+
+def test_posterior_logvar_init_reaches_both_networks_heads_and_is_refused_outside_the_clamp():
+    for encoder in ("pooled", "tokens"):
+        policy = VIBPolicy(make_config(encoder=encoder, posterior_logvar_init=-4.0))
+        heads = [m for m in policy.modules() if isinstance(m, GaussianBottleneck)]
+        assert heads and all(torch.all(h.posterior_head.bias[h.latent_dim :] == -4.0) for h in heads)
+    with pytest.raises(VIBConfigError, match="posterior_logvar_init"):
+        make_config(posterior_logvar_init=LOGVAR_MIN - 1)
+    with pytest.raises(VIBConfigError, match="posterior_logvar_init"):
+        make_config(posterior_logvar_init=LOGVAR_MAX + 1)

@@ -11,6 +11,12 @@ with the closed form, per latent dimension,
     KL = 1/2 * [ log sigma_m^2 - log sigma^2 + (sigma^2 + (mu - mu_m)^2) / sigma_m^2 - 1 ].
 
 R needs the observation only, so it is available at run time as an epistemic-uncertainty score.
+
+Where the posteriors start matters. A default linear head starts every token at sigma ~ 1, while the token
+network's image cells carry means far smaller than that: the decoder's first inputs from the camera are mostly
+noise, the robot state is not, and a decoder can settle on the state alone. `logvar_init` starts the head's
+log-variance at a chosen value instead (Alemi et al.'s deep VIB starts sigma near 0.007 the same way, with
+softplus(x - 5)), so that training begins as ACT does and the rate's pressure adds the noise.
 """
 
 from __future__ import annotations
@@ -63,13 +69,18 @@ class GaussianBottleneck(nn.Module):
         latent_dim: size D of each token's latent z_k.
         n_marginals: 1 (the paper's): one marginal shared by all tokens; K: one marginal per token position
             (the token network's per-cell option), each token's KL taken against its own.
+        logvar_init: None: the head's log-variance starts where a default linear layer puts it (about 0). A
+            number: the log-variance half of the head's bias starts there, so sigma ~ exp(logvar_init / 2).
     """
 
-    def __init__(self, d_token: int, latent_dim: int, n_marginals: int = 1):
+    def __init__(self, d_token: int, latent_dim: int, n_marginals: int = 1, logvar_init: float | None = None):
         super().__init__()
         self.latent_dim = latent_dim
         # One head shared by all tokens: tokens differ by the slice of the fused feature they carry.
         self.posterior_head = nn.Linear(d_token, 2 * latent_dim)
+        if logvar_init is not None:
+            with torch.no_grad():
+                self.posterior_head.bias[latent_dim:].fill_(logvar_init)
         shape = (latent_dim,) if n_marginals == 1 else (n_marginals, latent_dim)
         self.marginal_mean = nn.Parameter(torch.zeros(shape))
         self.marginal_logvar = nn.Parameter(torch.zeros(shape))

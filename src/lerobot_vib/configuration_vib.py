@@ -16,6 +16,7 @@ from lerobot.optim.schedulers import CosineAnnealingWithWarmupSchedulerConfig
 from lerobot.utils.constants import ACTION, OBS_STATE
 
 from .backbone import BACKBONE_LAYERS, BACKBONE_NORMS
+from .bottleneck import LOGVAR_MAX, LOGVAR_MIN
 from .scores import RND_INPUTS, SCORES, TOKEN_SCORES
 
 IMAGE_POOLINGS = ("spatial_softmax", "spatial_softmax_avg", "avg")
@@ -352,6 +353,11 @@ class VIBConfig(PreTrainedConfig):
         n_state_tokens: Number K of state tokens the fused feature is split into (paper Table V: 32 best).
         d_token: Size of one state token. The fused feature has `n_state_tokens * d_token` elements.
         latent_dim: Size D of each token's Gaussian latent z_k; the rate sums the KL over these dims.
+        posterior_logvar_init: None: every posterior head starts as a default linear layer, at sigma ~ 1 (the
+            paper's, and every checkpoint saved before this field). A number: the heads' log-variance starts there
+            (-6: sigma ~ 0.05), so the decoder first sees the camera's tokens with little noise and the rate's
+            pressure adds noise where the loss allows (bottleneck.py). Affects training only; a loaded
+            checkpoint acts with its own weights.
         sample_latent_at_inference: If True, inference decodes a posterior sample instead of the posterior
             mean. Training always samples (reparameterization trick), so where the posterior stays wide (the
             token network's image cells) the mean is an input the decoder never saw; choose on validation
@@ -443,6 +449,7 @@ class VIBConfig(PreTrainedConfig):
     n_state_tokens: int = 32
     d_token: int = 64
     latent_dim: int = 32
+    posterior_logvar_init: float | None = None
     sample_latent_at_inference: bool = False
 
     # Decoder q(a|z): encoder-only transformer with learnable action queries.
@@ -535,6 +542,11 @@ class VIBConfig(PreTrainedConfig):
             raise VIBConfigError(f"`scheduler_warmup_steps` must be >= 0 or null, got {self.scheduler_warmup_steps}.")
         if self.beta < 0:
             raise VIBConfigError(f"`beta` must be >= 0, got {self.beta}.")
+        if self.posterior_logvar_init is not None and not LOGVAR_MIN <= self.posterior_logvar_init <= LOGVAR_MAX:
+            raise VIBConfigError(
+                f"`posterior_logvar_init` must be null or in [{LOGVAR_MIN}, {LOGVAR_MAX}] (the log-variance's "
+                f"clamp), got {self.posterior_logvar_init}."
+            )
         if not 0 < self.rate_momentum <= 1:
             raise VIBConfigError(f"`rate_momentum` must be in (0, 1], got {self.rate_momentum}.")
         if self.uncertainty_score is not None and self.uncertainty_score not in SCORES:

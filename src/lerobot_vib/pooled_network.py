@@ -168,7 +168,9 @@ class PooledNetwork(nn.Module):
         super().__init__()
         self.config = config
         self.encoder = ObservationEncoder(config)
-        self.bottleneck = GaussianBottleneck(config.d_token, config.latent_dim)
+        self.bottleneck = GaussianBottleneck(
+            config.d_token, config.latent_dim, logvar_init=config.posterior_logvar_init
+        )
         self.decoder = ActionDecoder(config)
 
     def encode(self, batch: dict[str, Tensor]) -> Posterior:

@@ -67,13 +67,19 @@ class TokenNetwork(nn.Module):
             self.register_buffer("cell_pos_embed", cell_pos.repeat(len(self.camera_keys), 1), persistent=False)
             n_cells = self.n_cells
             self.image_bottleneck = GaussianBottleneck(
-                d, config.latent_dim, n_marginals=n_cells if config.token_marginal == "cell" else 1
+                d,
+                config.latent_dim,
+                n_marginals=n_cells if config.token_marginal == "cell" else 1,
+                logvar_init=config.posterior_logvar_init,
             )
         self.one_d_proj = nn.ModuleDict(
             {_name(k): nn.Linear(getattr(config, _feature(k)).shape[0], d) for k in self.one_d_keys}
         )
         self.one_d_bottleneck = nn.ModuleDict(
-            {_name(k): GaussianBottleneck(d, config.latent_dim) for k in self.one_d_keys}
+            {
+                _name(k): GaussianBottleneck(d, config.latent_dim, logvar_init=config.posterior_logvar_init)
+                for k in self.one_d_keys
+            }
         )
         if self.one_d_keys:
             self.one_d_pos_embed = nn.Embedding(self.n_1d_tokens, d)

@@ -37,6 +37,7 @@ memory instead (`--policy.encoder=tokens`, token_network.py), beside the same AC
 
     vib_tokens_beta0  vib_tokens_beta0  the token network with beta = 0
     vib_tokens        vib_tokens        the token network with the preset's beta
+    vib_tokens_narrow vib_tokens_narrow and with its posteriors starting narrow (`posterior_logvar_init`)
 
 and one control: `act_like_vib_nofloor`, ACT + VIB's trunk and weight average with the normalization floor
 off, which says whether ACT loses anything to the floor that VIB's pooled network lost (the contact cue).
@@ -63,6 +64,7 @@ from .safety import SafetyAction, SafetyMonitor
 from .stop import UncertaintyStep
 
 ENSEMBLE_COEFF = 0.01  # ACT's default m, for every ensembling row of Table I
+NARROW_LOGVAR_INIT = -6.0  # vib_tokens_narrow's posterior_logvar_init: sigma ~ 0.05 at the start of training
 
 # The trained networks a row's chunks or u come from, with the policy class family that loads them.
 NETWORKS: dict[str, str] = {
@@ -72,6 +74,7 @@ NETWORKS: dict[str, str] = {
     "act_like_vib": "act",  # and VIB's trunk, weight average and normalization floor (baselines/)
     "vib_tokens": "vib",  # the preset on the token network (`--policy.encoder=tokens`)
     "vib_tokens_beta0": "vib",  # and with beta = 0
+    "vib_tokens_narrow": "vib",  # and with its posteriors starting at sigma ~ 0.05 (NARROW_LOGVAR_INIT)
     "act_like_vib_nofloor": "act",  # act_like_vib with the normalization floor off (a control)
 }
 CHOSEN = "chosen"  # a row whose run time is chosen on validation episodes among the benchmark's `runtimes`
@@ -113,6 +116,9 @@ VARIANTS: dict[str, Variant] = {
     "vib_chosen": Variant("VIB (arm preset)", "vib", CHOSEN, "vib"),
     "vib_tokens_beta0": Variant("VIB tokens, beta = 0", "vib_tokens_beta0", CHOSEN, "vib_tokens_beta0"),
     "vib_tokens": Variant("VIB tokens (the preset's beta)", "vib_tokens", CHOSEN, "vib_tokens"),
+    "vib_tokens_narrow": Variant(
+        "VIB tokens, posteriors start narrow", "vib_tokens_narrow", CHOSEN, "vib_tokens_narrow"
+    ),
 }
 TABLE_I = ("act", "act_te", "vib", "vib_queue", "act_u", "act_rnd", "vib_wo_u", "vib_rnd")
 COMPARISON = ("act_chosen", "act_like_vib", "vib_beta0", "vib_chosen")

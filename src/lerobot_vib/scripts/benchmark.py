@@ -75,6 +75,7 @@ from ..sim.perturbations import CONDITIONS, SCENE_CONDITIONS
 from ..variants import (
     CHOSEN,
     COMPARISON,
+    NARROW_LOGVAR_INIT,
     NETWORKS,
     TOKEN_COMPARISON,
     VARIANTS,
@@ -356,9 +357,13 @@ def train_command(network: str, cfg: BenchmarkConfig, out: Path, seed: int) -> l
         return [_bin("lerobot-train"), f"--config_path={cfg.preset}", *common]
     if network == "vib_beta0":
         return [_bin("lerobot-train"), f"--config_path={cfg.preset}", "--policy.beta=0", *common]
-    if network in ("vib_tokens", "vib_tokens_beta0"):
-        beta = ["--policy.beta=0"] if network == "vib_tokens_beta0" else []
-        return [_bin("lerobot-train"), f"--config_path={cfg.preset}", "--policy.encoder=tokens", *beta, *common]
+    if network in ("vib_tokens", "vib_tokens_beta0", "vib_tokens_narrow"):
+        extra = {
+            "vib_tokens": [],
+            "vib_tokens_beta0": ["--policy.beta=0"],
+            "vib_tokens_narrow": [f"--policy.posterior_logvar_init={NARROW_LOGVAR_INIT}"],
+        }[network]
+        return [_bin("lerobot-train"), f"--config_path={cfg.preset}", "--policy.encoder=tokens", *extra, *common]
     if network not in ("act", "act_like_vib", "act_like_vib_nofloor"):
         raise ValueError(f"Unknown network {network!r}; choose from {list(NETWORKS)}.")
     preset = json.loads(cfg.preset.read_text())
