@@ -12,7 +12,10 @@ In training the decoder reads z = mu + sigma * eps; at evaluation it reads the p
   - the decoded first action's L1 error against the recorded action (normalized units), decoding mu and
     decoding a posterior sample (the mean over `--draws` draws of the per-draw error);
   - the same with each frame's camera image swapped for another frame's (half the frames away, so another
-    episode), the state kept: how much the decoded action depends on the camera at all.
+    episode), the state kept: how much the decoded action depends on the camera at all;
+  - the first action is close to the current state whatever the camera shows, so the whole chunk says more: the
+    mean absolute change of the decoded chunk (posterior mean, normalized units, every step and action dim) when
+    the camera is swapped, and for scale when the state is swapped instead.
 """
 
 from __future__ import annotations
@@ -73,6 +76,11 @@ def measure(policy: VIBPolicy, pre, batch: dict, draws: int) -> dict[str, float]
     other = net.encode(swapped)
     torch.manual_seed(0)
     out["L1, sampled z, camera swapped"] = sum(l1(other.sample()) for _ in range(draws)) / draws
+    own = net.decode(posterior.mean)
+    out["chunk change, camera swapped"] = float((net.decode(other.mean) - own).abs().mean())
+    state_swapped = dict(obs)
+    state_swapped["observation.state"] = obs["observation.state"].roll(len(target) // 2, dims=0)
+    out["chunk change, state swapped"] = float((net.decode(net.encode(state_swapped).mean) - own).abs().mean())
     return out
 
 
@@ -95,6 +103,8 @@ def main() -> None:
         "L1, mean z",
         "L1, sampled z",
         "L1, sampled z, camera swapped",
+        "chunk change, camera swapped",
+        "chunk change, state swapped",
     ]
     lines = [
         "# How much of the token network's training input is noise",
@@ -102,7 +112,9 @@ def main() -> None:
         f"Machine: {cpu_name()}. Command: `python benchmarks/{Path(__file__).name} " + shlex.join(sys.argv[1:]) + "`.",
         "",
         "SNR: the variance of the posterior mean across frames (and cells) over the mean posterior variance, "
-        "averaged over latent dims. L1: the decoded first action against the recorded one, normalized units.",
+        "averaged over latent dims. L1: the decoded first action against the recorded one, normalized units. "
+        "Chunk change: the mean absolute change of the decoded chunk (posterior mean) when each frame's camera, "
+        "or its state, is swapped for another episode's.",
         "",
         "| checkpoint | frames | " + " | ".join(columns) + " |",
         "| --- | --- |" + " --- |" * len(columns),
