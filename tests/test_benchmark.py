@@ -500,6 +500,7 @@ def test_the_token_comparison_trains_the_token_network_beside_the_same_act_rows_
         dataset=DatasetConfig(repo_id="x"), env=ArmGraspEnvConfig(), output_dir=tmp_path, variants=["vib_tokens_narrow"]
     )
     assert asked.networks() == ["vib_tokens_narrow"]
+    assert asked.episodes("vib_tokens_narrow", "normal") == asked.n_episodes  # a claim's row: the most episodes
 
 
 def test_comparison_rows_train_their_own_networks_and_run_the_run_time_they_are_given(tmp_path):

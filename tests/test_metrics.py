@@ -36,6 +36,12 @@ def test_wilson_interval_matches_the_closed_form():
         wilson_interval(11, 10)
 
 
+def test_every_success_gives_an_interval_that_holds_the_rate_itself():
+    # 50 of 50 rounded the upper bound to 0.9999999999999999, and the success plot's error bar went negative
+    for n in range(1, 201):
+        assert wilson_interval(n, n)[1] == 1.0 and wilson_interval(0, n)[0] == 0.0
+
+
 def test_first_crossing_with_a_constant_and_with_a_band_shorter_than_the_episode():
     assert first_crossing([1, 1, 3, 1], 2.0) == 2
     assert first_crossing([1, 1, 1], 2.0) is None

@@ -44,7 +44,8 @@ def wilson_interval(successes: int, n: int, z: float = Z95) -> tuple[float, floa
     p = successes / n
     center = (p + z * z / (2 * n)) / (1 + z * z / n)
     half = z * math.sqrt(p * (1 - p) / n + z * z / (4 * n * n)) / (1 + z * z / n)
-    return max(center - half, 0.0), min(center + half, 1.0)
+    # The interval always holds p; rounding at p = 0 or 1 (50 of 50) would otherwise put a bound a hair inside it.
+    return max(min(center - half, p), 0.0), min(max(center + half, p), 1.0)
 
 
 def auroc(negatives: Sequence[float], positives: Sequence[float]) -> float:

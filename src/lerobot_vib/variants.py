@@ -123,7 +123,8 @@ VARIANTS: dict[str, Variant] = {
 TABLE_I = ("act", "act_te", "vib", "vib_queue", "act_u", "act_rnd", "vib_wo_u", "vib_rnd")
 COMPARISON = ("act_chosen", "act_like_vib", "vib_beta0", "vib_chosen")
 TOKEN_COMPARISON = (
-    "act_chosen", "act_like_vib", "act_like_vib_nofloor", "vib_tokens_beta0", "vib_tokens", "vib_chosen",
+    "act_chosen", "act_like_vib", "act_like_vib_nofloor", "vib_tokens_beta0", "vib_tokens", "vib_tokens_narrow",
+    "vib_chosen",
 )  # fmt: skip
 _RUNTIME_MODES = {"queue": "none", "act": "act", "eq6": "uncertainty"}
 
