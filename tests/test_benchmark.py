@@ -476,9 +476,12 @@ def test_the_token_comparison_trains_the_token_network_beside_the_same_act_rows_
         dataset=DatasetConfig(repo_id="x"), env=ArmGraspEnvConfig(), output_dir=tmp_path, variants=["tokens"]
     )
     assert cfg.variants == [
-        "act_chosen", "act_like_vib", "act_like_vib_nofloor", "vib_tokens_beta0", "vib_tokens", "vib_chosen",
+        "act_chosen", "act_like_vib", "act_like_vib_nofloor", "vib_tokens_beta0", "vib_tokens", "vib_tokens_narrow",
+        "vib_chosen",
     ]  # fmt: skip
-    networks = {"act", "act_like_vib", "act_like_vib_nofloor", "vib_tokens_beta0", "vib_tokens", "vib"}
+    networks = {
+        "act", "act_like_vib", "act_like_vib_nofloor", "vib_tokens_beta0", "vib_tokens", "vib_tokens_narrow", "vib",
+    }  # fmt: skip
     assert set(cfg.networks()) == networks
     # the control: ACT + VIB's trunk and weight average with the normalization floor off, and only that
     like = benchmark.train_command("act_like_vib", cfg, tmp_path / "l", seed=1000)
