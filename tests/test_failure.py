@@ -187,6 +187,20 @@ def test_the_choice_prefers_the_score_that_rises_in_failures_and_reads_validatio
     assert ranking[0]["tpr"] == 1.0
 
 
+def test_a_seed_that_solves_every_validation_episode_still_calibrates_but_does_not_hide_the_others_failures():
+    failing = successes(24) + [Episode(False, {"a": np.ones(50), "b": np.full(50, 3.0)}) for _ in range(8)]
+    flawless = successes(24)
+    candidates = candidate_monitors(["a", "b"], windows=(1,))
+    chosen, ranking = choose_monitor(candidates, {1000: failing, 3000: flawless}, 0.1)
+    assert chosen.scores == ("b",) and ranking[0]["tpr"] == 1.0
+    # the flawless seed's false alarms still count against a monitor
+    noisy = successes(12) + successes(12, b=np.full(50, 3.0))
+    _, ranking = choose_monitor([Monitor(("b",))], {1000: failing, 3000: noisy}, 0.1)
+    assert ranking[0]["tnr"] < 1.0
+    # with no failure anywhere there is nothing to choose by
+    assert choose_monitor(candidates, {3000: flawless}, 0.1) == (None, [])
+
+
 def test_a_monitor_refuses_a_window_below_one_step_and_unknown_kinds():
     with pytest.raises(ValueError, match="window"):
         Monitor(("a",), window=0)

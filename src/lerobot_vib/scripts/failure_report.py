@@ -281,6 +281,13 @@ def failure_prediction(cfg, cells: dict, runtime_of) -> dict:
             for m in candidates
             if (isinstance(m, AnyOf) or len(m.scores) == 1 or m.threshold == "constant") and ROLLOUT_RND not in m.scores
         ]
+        if all(e.success for eps in validation.values() for e in eps):
+            out[variant] = {
+                "error": "no monitor could be chosen: every validation rollout succeeded, so none shows what a"
+                " failure looks like (`--failure_validation=true` adds perturbed validation rollouts)",
+                "uncalibrated_seeds": uncalibrated,
+            }
+            continue
         best, ranking = choose_monitor(runnable, validation, cfg.alpha, benign=BENIGN)
         if best is None:
             out[variant] = {
