@@ -304,6 +304,28 @@ def test_a_seed_too_weak_to_calibrate_is_set_aside_by_name_and_the_others_still_
     assert "shipped" not in none_left["vib_tokens"]
 
 
+def test_a_seed_with_no_failed_validation_rollout_is_still_reported_and_none_at_all_names_the_cause():
+    from lerobot_vib.scripts import failure_report
+
+    rng = np.random.default_rng(5)
+    cfg = _report_config([1000, 3000])
+    cells = {}
+    for seed in (1000, 3000):
+        validation = _scripted_cell(rng, "validation", 40, 4, 400_000)
+        if seed == 3000:  # this seed solves every validation episode
+            validation["success"] = [True] * 40
+        cells[("vib_tokens", "validation", seed, "act:0.3")] = validation
+        cells[("vib_tokens", "normal", seed, None)] = _scripted_cell(rng, "normal", 20, 3, 600_000)
+    result = failure_report.failure_prediction(cfg, cells, lambda v, s: "act:0.3")["vib_tokens"]
+    assert result["shipped"]["monitor"]["scores"] == ["b"]
+    assert list(result["test"]["per_seed"]) == ["1000", "3000"]
+
+    flawless = {k: v for k, v in cells.items() if k[2] == 3000}
+    nothing = failure_report.failure_prediction(_report_config([3000]), flawless, lambda v, s: "act:0.3")
+    assert "every validation rollout succeeded" in nothing["vib_tokens"]["error"]
+    assert "shipped" not in nothing["vib_tokens"]
+
+
 def test_the_earliest_monitor_is_taken_only_among_those_meeting_the_tpr_and_tnr_targets_on_validation():
     from lerobot_vib.scripts.failure_report import earliest_meeting_targets
 

@@ -383,11 +383,11 @@ def choose_monitor(
     """The candidate with the best balanced accuracy on the validation rollouts, averaged over the groups of
     `validation` (one per training seed, each calibrated on its own successful clean rollouts); a tie goes to
     the earlier detection, then to the one listed first. A monitor is judged on the rollouts its scores were not
-    fitted on. A group without a failed rollout has no TPR: it still must calibrate, and its TNR counts, but the
-    balanced accuracy is averaged over the groups that have both (a seed that solves every validation episode
-    must not hide the others' failures). Returns it (None: none could be calibrated, or no group failed) and
-    every candidate's row, best first; a row's "benign_stopped" is the share of successful rollouts under the
-    `benign` conditions it alarms on. Only validation rollouts are read."""
+    fitted on. A group without a failed rollout has no TPR but must still calibrate: the balanced accuracy is the
+    mean TPR over the groups with failures and the mean TNR over every group, so that a seed which solves every
+    validation episode neither hides the others' failures nor its own false alarms. Returns it (None: none could
+    be calibrated, or no group failed) and every candidate's row, best first; a row's "benign_stopped" is the
+    share of successful rollouts under the `benign` conditions it alarms on. Only validation rollouts are read."""
     rows = []
     for i, monitor in enumerate(candidates):
         per_group, benign_groups = [], []
@@ -400,18 +400,20 @@ def choose_monitor(
             except CalibrationError:
                 per_group = []
                 break
-        judged_both = [m for m in per_group if m.balanced_accuracy is not None]
-        if not judged_both:
+        tprs = [m.tpr for m in per_group if m.tpr is not None]
+        tnrs = [m.tnr for m in per_group if m.tnr is not None]
+        if not tprs or not tnrs:
             continue
+        tpr, tnr = float(np.mean(tprs)), float(np.mean(tnrs))
         detection = [m.detection_time for m in per_group if m.detection_time is not None]
         benign_stopped = [1 - m.tnr for m in benign_groups if m.tnr is not None]
         rows.append(
             {
                 "monitor": monitor,
                 "order": i,
-                "balanced_accuracy": float(np.mean([m.balanced_accuracy for m in judged_both])),
-                "tpr": float(np.mean([m.tpr for m in judged_both])),
-                "tnr": float(np.mean([m.tnr for m in per_group if m.tnr is not None])),
+                "balanced_accuracy": (tpr + tnr) / 2,
+                "tpr": tpr,
+                "tnr": tnr,
                 "detection_time": float(np.mean(detection)) if detection else math.inf,
                 "benign_stopped": float(np.mean(benign_stopped)) if benign_stopped else None,
             }
