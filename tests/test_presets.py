@@ -19,6 +19,7 @@ OFFLINE_CPU = {
     "vib_aloha_transfer_cube.json": GPU_ON_CPU,
     "vib_aloha_insertion.json": GPU_ON_CPU,
     "vib_arm_sim.json": [],
+    "vib_arm_tokens.json": [],
     "vib_real_arm.json": GPU_ON_CPU,
 }
 
