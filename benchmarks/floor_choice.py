@@ -64,17 +64,20 @@ def trained_step(train_dir: Path) -> int:
     return json.loads(state.read_text())["step"] if state.is_file() else 0
 
 
-def train(option: str, args) -> Path:
+def train(option: str, args, extra: list[str] | None = None, steps: int | None = None) -> Path:
+    """Train one option (`extra`: its flags, by default the floor's; `steps`: by default `args.steps`)."""
+    extra = [*ENCODER[args.encoder], *OPTIONS[option]] if extra is None else extra
+    steps = args.steps if steps is None else steps
     run_dir = args.out / option / f"seed_{args.seed}"
     train_dir = run_dir / "train"
     last = train_dir / "checkpoints" / "last" / "pretrained_model"
-    if trained_step(train_dir) >= args.steps:
+    if trained_step(train_dir) >= steps:
         return last
     if last.exists():  # an interrupted training: LeRobot resumes from its last checkpoint
         cmd = [str(BIN / "lerobot-train"), f"--config_path={last / 'train_config.json'}", "--resume=true"]
     else:
         cmd = [str(BIN / "lerobot-train"), f"--config_path={args.preset}", f"--dataset.root={args.dataset_root}"]
-        cmd += [*ENCODER[args.encoder], *OPTIONS[option], f"--steps={args.steps}", "--save_freq=1000"]
+        cmd += [*extra, f"--steps={steps}", f"--save_freq={min(1000, steps)}"]
         cmd += [f"--seed={args.seed}", f"--output_dir={train_dir}"]
     run_dir.mkdir(parents=True, exist_ok=True)
     print(as_typed(cmd), flush=True)
@@ -106,9 +109,37 @@ def last_loss(log: Path) -> float | None:
     return float(losses[-1].split(":")[1]) if losses else None
 
 
+def training_summary(run_dir: Path) -> tuple[float, float | None]:
+    """Minutes of training (over every lerobot-train run in its log) and the last logged loss."""
+    runs = training_runs(run_dir / "train.log")
+    return sum(last - first for first, last in runs) / 60, last_loss(run_dir / "train.log")
+
+
 def cell(successes: int, n: int) -> str:
     low, high = wilson_interval(successes, n)
     return f"{successes}/{n} = {100 * successes / n:.0f}% [{100 * low:.0f}-{100 * high:.0f}]"
+
+
+def write_report(table: str, runs: dict[str, Path], start: float, output: Path | None) -> None:
+    """Print the report (its head and table, then each run's training command and this run's time); save it
+    to `output` if given."""
+    commands = "\n".join(f"- `{name}`: `{(d / 'command.txt').read_text().splitlines()[0]}`" for name, d in runs.items())
+    report = "\n".join(
+        [
+            table,
+            "",
+            "Training commands:",
+            "",
+            commands,
+            "",
+            f"This run of the script: {(time.time() - start) / 60:.1f} min (stages already saved are not rerun).",
+            "",
+        ]
+    )
+    print(report)
+    if output:
+        output.parent.mkdir(parents=True, exist_ok=True)
+        output.write_text(report)
 
 
 def main() -> None:
@@ -146,15 +177,12 @@ def main() -> None:
 
     rows = []
     for o in args.options:
-        runs = training_runs(base[o] / "train.log")
-        minutes = sum(last - first for first, last in runs) / 60
-        loss = last_loss(base[o] / "train.log")
+        minutes, loss = training_summary(base[o])
         mark = " **(chosen)**" if o == chosen else ""
         rows.append(
             f"| `{o}`{mark} | {MEANING[o]} | {val[o][0]}/{val[o][1]} | {cell(*test[o])} | {minutes:.1f} | "
             f"{loss if loss is not None else '-'} |"
         )
-    commands = "\n".join(f"- `{o}`: `{(base[o] / 'command.txt').read_text().splitlines()[0]}`" for o in args.options)
     report = "\n".join(
         [
             "# The normalization floor: which features it covers, chosen on validation seeds",
@@ -172,19 +200,9 @@ def main() -> None:
             "| floor | on | validation successes | test successes [95% Wilson] | training min | last logged loss |",
             "| --- | --- | ---: | --- | ---: | ---: |",
             *rows,
-            "",
-            "Training commands:",
-            "",
-            commands,
-            "",
-            f"This run of the script: {(time.time() - start) / 60:.1f} min (stages already saved are not rerun).",
-            "",
         ]
     )
-    print(report)
-    if args.output:
-        args.output.parent.mkdir(parents=True, exist_ok=True)
-        args.output.write_text(report)
+    write_report(report, base, start, args.output)
 
 
 if __name__ == "__main__":

@@ -82,6 +82,9 @@ def test_tiny_benchmark_trains_evaluates_reports_and_resumes_without_repeating_a
     def no_training(*args, **kwargs):
         raise AssertionError("the trained checkpoints must be reused")
 
+    # matplotlib's first import in a fresh environment builds its font cache with a subprocess: not a training
+    import matplotlib.pyplot  # noqa: F401
+
     monkeypatch.setattr(benchmark, "run_cell", counting)
     monkeypatch.setattr(benchmark.subprocess, "run", no_training)
     results = run_benchmark(cfg)
@@ -477,10 +480,11 @@ def test_the_token_comparison_trains_the_token_network_beside_the_same_act_rows_
     )
     assert cfg.variants == [
         "act_chosen", "act_like_vib", "act_like_vib_nofloor", "vib_tokens_beta0", "vib_tokens", "vib_tokens_narrow",
-        "vib_chosen",
+        "vib_tokens_narrow_beta0", "vib_chosen",
     ]  # fmt: skip
     networks = {
-        "act", "act_like_vib", "act_like_vib_nofloor", "vib_tokens_beta0", "vib_tokens", "vib_tokens_narrow", "vib",
+        "act", "act_like_vib", "act_like_vib_nofloor", "vib_tokens_beta0", "vib_tokens", "vib_tokens_narrow",
+        "vib_tokens_narrow_beta0", "vib",
     }  # fmt: skip
     assert set(cfg.networks()) == networks
     # the control: ACT + VIB's trunk and weight average with the normalization floor off, and only that
@@ -499,6 +503,9 @@ def test_the_token_comparison_trains_the_token_network_beside_the_same_act_rows_
     narrow = benchmark.train_command("vib_tokens_narrow", cfg, tmp_path / "t", seed=1000)
     assert [a for a in narrow if "posterior_logvar_init" not in a] == tokens
     assert "--policy.posterior_logvar_init=-6.0" in narrow
+    # its control: the same start with no pressure on the rate, and nothing else changed
+    narrow0 = benchmark.train_command("vib_tokens_narrow_beta0", cfg, tmp_path / "t", seed=1000)
+    assert [a for a in narrow0 if a != "--policy.beta=0"] == narrow and "--policy.beta=0" in narrow0
     asked = BenchmarkConfig(
         dataset=DatasetConfig(repo_id="x"), env=ArmGraspEnvConfig(), output_dir=tmp_path, variants=["vib_tokens_narrow"]
     )

@@ -98,6 +98,31 @@ def test_lerobot_train_refuses_a_home_pose_of_the_wrong_length_before_it_loads_t
     assert "has 14" in out and "Creating dataset" not in out
 
 
+@pytest.mark.parametrize("preset", ["vib_aloha_transfer_cube.json", "vib_arm_sim.json"])
+def test_lerobot_train_refuses_a_preset_whose_env_acts_in_another_space_than_the_data(preset, tmp_path):
+    """An ALOHA preset (14 values) on the arm's 7-D recording, or the arm's preset on 14-D data, would train to
+    its end and leave a policy its own env cannot run: refused before the dataset is loaded."""
+    action_dim = 7 if "aloha" in preset else 14
+    root = tmp_path / "data"
+    write_tiny_dataset(root, state_dim=action_dim, action_dim=action_dim, n_episodes=1)
+    last = refused(
+        [
+            BIN / "lerobot-train",
+            f"--config_path={Path(__file__).parents[1] / 'configs' / 'policy' / preset}",
+            "--dataset.repo_id=local/tiny",
+            f"--dataset.root={root}",
+            "--steps=1",
+            f"--output_dir={tmp_path / 'run'}",
+        ],
+        timeout=300,
+    )
+    env_dim = 14 if "aloha" in preset else 7
+    assert (
+        f"acts with {env_dim} values, but the dataset at --dataset.root={root} records actions of {action_dim}" in last
+    )
+    assert not (tmp_path / "run").exists()
+
+
 def test_lerobot_vib_eval_refuses_an_env_whose_images_differ_from_the_policys(tiny_checkpoint, tmp_path):
     last = refused(
         [

@@ -7,6 +7,7 @@ import pytest
 
 from helpers import BIN, run
 from lerobot_vib.configuration_vib import DEFAULT_SCORE, SCRATCH_BACKBONE_NORM
+from tiny_dataset import write_tiny_dataset
 
 PRESETS = Path(__file__).parents[1] / "configs" / "policy"
 
@@ -22,6 +23,16 @@ OFFLINE_CPU = {
     "vib_arm_tokens.json": [],
     "vib_real_arm.json": GPU_ON_CPU,
 }
+# The presets whose env is the simulated arm act with 7 values; lerobot-train refuses them on 14-D data.
+ARM_PRESETS = {"vib_arm_sim.json", "vib_arm_tokens.json"}
+
+
+@pytest.fixture(scope="module")
+def tiny_arm_dataset_root(tmp_path_factory) -> Path:
+    """The tiny dataset with the simulated arm's 7-D state and action."""
+    root = tmp_path_factory.mktemp("arm_data") / "tiny_arm"
+    write_tiny_dataset(root, repo_id="local/tiny", state_dim=7, action_dim=7)
+    return root
 
 
 def test_every_preset_is_tested():
@@ -29,16 +40,17 @@ def test_every_preset_is_tested():
 
 
 @pytest.mark.parametrize("name", sorted(OFFLINE_CPU))
-def test_preset_trains_through_config_path(name, tiny_dataset_root, tmp_path):
+def test_preset_trains_through_config_path(name, tiny_dataset_root, tiny_arm_dataset_root, tmp_path):
     """`lerobot-train --config_path=configs/policy/<preset>` plus the dataset flags (and for the GPU preset,
-    the CPU and no ImageNet weights)."""
+    the CPU and no ImageNet weights), on data shaped as the preset's env acts."""
     out = tmp_path / "run"
+    root = tiny_arm_dataset_root if name in ARM_PRESETS else tiny_dataset_root
     log = run(
         [
             str(BIN / "lerobot-train"),
             f"--config_path={PRESETS / name}",
             "--dataset.repo_id=local/tiny",
-            f"--dataset.root={tiny_dataset_root}",
+            f"--dataset.root={root}",
             *OFFLINE_CPU[name],
             "--steps=1",
             "--num_workers=0",

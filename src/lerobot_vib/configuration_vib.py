@@ -51,7 +51,7 @@ DEFAULT_SCORE = "low_image_rate"
 SCRATCH_BACKBONE_NORM = "group_norm"
 
 
-def _cli_dataset_action_dim() -> int | None:
+def cli_dataset_action_dim() -> int | None:
     """The action size of the local dataset that `--dataset.root` names on the command line, if it names one."""
     root = parser.parse_arg("dataset.root")
     info = Path(root) / "meta" / "info.json" if root else None
@@ -608,7 +608,7 @@ class VIBConfig(PreTrainedConfig):
             return
         if self.output_features and ACTION in self.output_features:
             action_dim, source = self.output_features[ACTION].shape[0], "the policy's action"
-        elif (action_dim := _cli_dataset_action_dim()) is not None:
+        elif (action_dim := cli_dataset_action_dim()) is not None:
             source = f"the action of the dataset at --dataset.root={parser.parse_arg('dataset.root')}"
         else:
             return

@@ -38,6 +38,7 @@ memory instead (`--policy.encoder=tokens`, token_network.py), beside the same AC
     vib_tokens_beta0  vib_tokens_beta0  the token network with beta = 0
     vib_tokens        vib_tokens        the token network with the preset's beta
     vib_tokens_narrow vib_tokens_narrow and with its posteriors starting narrow (`posterior_logvar_init`)
+    vib_tokens_narrow_beta0  the narrow start with beta = 0: what the bottleneck's pressure buys the shipped start
 
 and one control: `act_like_vib_nofloor`, ACT + VIB's trunk and weight average with the normalization floor
 off, which says whether ACT loses anything to the floor that VIB's pooled network lost (the contact cue).
@@ -75,6 +76,7 @@ NETWORKS: dict[str, str] = {
     "vib_tokens": "vib",  # the preset on the token network (`--policy.encoder=tokens`)
     "vib_tokens_beta0": "vib",  # and with beta = 0
     "vib_tokens_narrow": "vib",  # and with its posteriors starting at sigma ~ 0.05 (NARROW_LOGVAR_INIT)
+    "vib_tokens_narrow_beta0": "vib",  # and that start with beta = 0
     "act_like_vib_nofloor": "act",  # act_like_vib with the normalization floor off (a control)
 }
 CHOSEN = "chosen"  # a row whose run time is chosen on validation episodes among the benchmark's `runtimes`
@@ -119,12 +121,15 @@ VARIANTS: dict[str, Variant] = {
     "vib_tokens_narrow": Variant(
         "VIB tokens, posteriors start narrow", "vib_tokens_narrow", CHOSEN, "vib_tokens_narrow"
     ),
+    "vib_tokens_narrow_beta0": Variant(
+        "VIB tokens, narrow start, beta = 0", "vib_tokens_narrow_beta0", CHOSEN, "vib_tokens_narrow_beta0"
+    ),
 }
 TABLE_I = ("act", "act_te", "vib", "vib_queue", "act_u", "act_rnd", "vib_wo_u", "vib_rnd")
 COMPARISON = ("act_chosen", "act_like_vib", "vib_beta0", "vib_chosen")
 TOKEN_COMPARISON = (
     "act_chosen", "act_like_vib", "act_like_vib_nofloor", "vib_tokens_beta0", "vib_tokens", "vib_tokens_narrow",
-    "vib_chosen",
+    "vib_tokens_narrow_beta0", "vib_chosen",
 )  # fmt: skip
 _RUNTIME_MODES = {"queue": "none", "act": "act", "eq6": "uncertainty"}
 

@@ -357,11 +357,13 @@ def train_command(network: str, cfg: BenchmarkConfig, out: Path, seed: int) -> l
         return [_bin("lerobot-train"), f"--config_path={cfg.preset}", *common]
     if network == "vib_beta0":
         return [_bin("lerobot-train"), f"--config_path={cfg.preset}", "--policy.beta=0", *common]
-    if network in ("vib_tokens", "vib_tokens_beta0", "vib_tokens_narrow"):
+    if network in ("vib_tokens", "vib_tokens_beta0", "vib_tokens_narrow", "vib_tokens_narrow_beta0"):
+        narrow = [f"--policy.posterior_logvar_init={NARROW_LOGVAR_INIT}"]
         extra = {
             "vib_tokens": [],
             "vib_tokens_beta0": ["--policy.beta=0"],
-            "vib_tokens_narrow": [f"--policy.posterior_logvar_init={NARROW_LOGVAR_INIT}"],
+            "vib_tokens_narrow": narrow,
+            "vib_tokens_narrow_beta0": [*narrow, "--policy.beta=0"],
         }[network]
         return [_bin("lerobot-train"), f"--config_path={cfg.preset}", "--policy.encoder=tokens", *extra, *common]
     if network not in ("act", "act_like_vib", "act_like_vib_nofloor"):

@@ -11,11 +11,12 @@ from dataclasses import asdict, dataclass, field, fields
 from pathlib import Path
 
 import gymnasium as gym
+from lerobot.configs import parser
 from lerobot.configs.types import FeatureType, PolicyFeature
 from lerobot.envs.configs import AlohaEnv, EnvConfig
 from lerobot.utils.constants import ACTION, OBS_IMAGES, OBS_STATE
 
-from ..configuration_vib import VIBConfigError
+from ..configuration_vib import VIBConfigError, cli_dataset_action_dim
 from .arm_env import DEFAULT_WORKSPACE as ARM_DEFAULT_WORKSPACE
 from .arm_env import LEGACY_WORKSPACE as ARM_LEGACY_WORKSPACE
 from .arm_env import WORKSPACES as ARM_WORKSPACES
@@ -85,6 +86,16 @@ class _RenderingEnv:
                 type=FeatureType.VISUAL, shape=(self.observation_height, self.observation_width, 3)
             )
             self.features_map[f"pixels/{cam}"] = f"{OBS_IMAGES}.{cam}"
+        # A training whose data acts in another space would run to its end and leave a policy this env cannot
+        # evaluate (an ALOHA preset on the arm's 7-D recording); say so before it starts.
+        recorded = cli_dataset_action_dim()
+        if recorded is not None and recorded != state_size:
+            raise VIBConfigError(
+                f"--env.type={self.type} acts with {state_size} values, but the dataset at --dataset.root="
+                f"{parser.parse_arg('dataset.root')} records actions of {recorded}: use the preset and env type "
+                "made for that data (the arm's 7: configs/policy/vib_arm_sim.json with --env.type=vib_arm; "
+                "ALOHA's 14: configs/policy/vib_aloha_transfer_cube.json with --env.type=aloha_fast)."
+            )
 
     @property
     def package_name(self) -> str:
