@@ -480,11 +480,11 @@ def test_the_token_comparison_trains_the_token_network_beside_the_same_act_rows_
     )
     assert cfg.variants == [
         "act_chosen", "act_like_vib", "act_like_vib_nofloor", "vib_tokens_beta0", "vib_tokens", "vib_tokens_narrow",
-        "vib_tokens_narrow_beta0", "vib_chosen",
+        "vib_tokens_narrow_beta0", "vib_tokens_narrow_act_trunk", "vib_chosen",
     ]  # fmt: skip
     networks = {
         "act", "act_like_vib", "act_like_vib_nofloor", "vib_tokens_beta0", "vib_tokens", "vib_tokens_narrow",
-        "vib_tokens_narrow_beta0", "vib",
+        "vib_tokens_narrow_beta0", "vib_tokens_narrow_act_trunk", "vib",
     }  # fmt: skip
     assert set(cfg.networks()) == networks
     # the control: ACT + VIB's trunk and weight average with the normalization floor off, and only that
@@ -506,6 +506,10 @@ def test_the_token_comparison_trains_the_token_network_beside_the_same_act_rows_
     # its control: the same start with no pressure on the rate, and nothing else changed
     narrow0 = benchmark.train_command("vib_tokens_narrow_beta0", cfg, tmp_path / "t", seed=1000)
     assert [a for a in narrow0 if a != "--policy.beta=0"] == narrow and "--policy.beta=0" in narrow0
+    # and the same start on ACT's trunk: the two trunk flags that make VIB's ResNet LeRobot ACT's, nothing else
+    trunk = benchmark.train_command("vib_tokens_narrow_act_trunk", cfg, tmp_path / "t", seed=1000)
+    flags = ["--policy.backbone_norm=frozen_bn", "--policy.backbone_layer=layer4"]
+    assert [a for a in trunk if a not in flags] == narrow and all(f in trunk for f in flags)
     asked = BenchmarkConfig(
         dataset=DatasetConfig(repo_id="x"), env=ArmGraspEnvConfig(), output_dir=tmp_path, variants=["vib_tokens_narrow"]
     )

@@ -73,6 +73,7 @@ from ..rnd import RND, RNDConfig, train_rnd
 from ..sim import env_config  # noqa: F401  (registers --env.type=aloha_fast and vib_arm)
 from ..sim.perturbations import CONDITIONS, SCENE_CONDITIONS
 from ..variants import (
+    ACT_TRUNK,
     CHOSEN,
     COMPARISON,
     NARROW_LOGVAR_INIT,
@@ -357,13 +358,14 @@ def train_command(network: str, cfg: BenchmarkConfig, out: Path, seed: int) -> l
         return [_bin("lerobot-train"), f"--config_path={cfg.preset}", *common]
     if network == "vib_beta0":
         return [_bin("lerobot-train"), f"--config_path={cfg.preset}", "--policy.beta=0", *common]
-    if network in ("vib_tokens", "vib_tokens_beta0", "vib_tokens_narrow", "vib_tokens_narrow_beta0"):
+    if network.startswith("vib_tokens"):
         narrow = [f"--policy.posterior_logvar_init={NARROW_LOGVAR_INIT}"]
         extra = {
             "vib_tokens": [],
             "vib_tokens_beta0": ["--policy.beta=0"],
             "vib_tokens_narrow": narrow,
             "vib_tokens_narrow_beta0": [*narrow, "--policy.beta=0"],
+            "vib_tokens_narrow_act_trunk": [*narrow, *(f"--policy.{k}={v}" for k, v in ACT_TRUNK.items())],
         }[network]
         return [_bin("lerobot-train"), f"--config_path={cfg.preset}", "--policy.encoder=tokens", *extra, *common]
     if network not in ("act", "act_like_vib", "act_like_vib_nofloor"):
