@@ -480,11 +480,11 @@ def test_the_token_comparison_trains_the_token_network_beside_the_same_act_rows_
     )
     assert cfg.variants == [
         "act_chosen", "act_like_vib", "act_like_vib_nofloor", "vib_tokens_beta0", "vib_tokens", "vib_tokens_narrow",
-        "vib_tokens_narrow_beta0", "vib_tokens_narrow_act_trunk", "vib_chosen",
+        "vib_tokens_narrow_beta0", "vib_tokens_narrow_act_trunk", "vib_tokens_narrow_act_trunk_l3", "vib_chosen",
     ]  # fmt: skip
     networks = {
         "act", "act_like_vib", "act_like_vib_nofloor", "vib_tokens_beta0", "vib_tokens", "vib_tokens_narrow",
-        "vib_tokens_narrow_beta0", "vib_tokens_narrow_act_trunk", "vib",
+        "vib_tokens_narrow_beta0", "vib_tokens_narrow_act_trunk", "vib_tokens_narrow_act_trunk_l3", "vib",
     }  # fmt: skip
     assert set(cfg.networks()) == networks
     # the control: ACT + VIB's trunk and weight average with the normalization floor off, and only that
@@ -510,6 +510,9 @@ def test_the_token_comparison_trains_the_token_network_beside_the_same_act_rows_
     trunk = benchmark.train_command("vib_tokens_narrow_act_trunk", cfg, tmp_path / "t", seed=1000)
     flags = ["--policy.backbone_norm=frozen_bn", "--policy.backbone_layer=layer4"]
     assert [a for a in trunk if a not in flags] == narrow and all(f in trunk for f in flags)
+    # and that trunk one stage shorter: the layer flag alone differs
+    trunk3 = benchmark.train_command("vib_tokens_narrow_act_trunk_l3", cfg, tmp_path / "t", seed=1000)
+    assert [a.replace("layer3", "layer4") for a in trunk3] == trunk
     asked = BenchmarkConfig(
         dataset=DatasetConfig(repo_id="x"), env=ArmGraspEnvConfig(), output_dir=tmp_path, variants=["vib_tokens_narrow"]
     )

@@ -41,6 +41,8 @@ memory instead (`--policy.encoder=tokens`, token_network.py), beside the same AC
     vib_tokens_narrow_beta0  the narrow start with beta = 0: what the bottleneck's pressure buys the shipped start
     vib_tokens_narrow_act_trunk  the narrow start on ACT's trunk (frozen batch norm, ResNet to layer4): what
                       VIB's trunk costs the token network where `act_like_vib` lost to ACT (unseen block, colour)
+    vib_tokens_narrow_act_trunk_l3  ACT's trunk cut after layer3: 48 image cells instead of 12, to see whether
+                      its success and a map fine enough to place an occluder go together
 
 and one control: `act_like_vib_nofloor`, ACT + VIB's trunk and weight average with the normalization floor
 off, which says whether ACT loses anything to the floor that VIB's pooled network lost (the contact cue).
@@ -70,6 +72,7 @@ ENSEMBLE_COEFF = 0.01  # ACT's default m, for every ensembling row of Table I
 NARROW_LOGVAR_INIT = -6.0  # vib_tokens_narrow's posterior_logvar_init: sigma ~ 0.05 at the start of training
 # LeRobot's ACT trunk (ResNet-18 with frozen batch norm, cut after layer4), as VIBConfig flags
 ACT_TRUNK = {"backbone_norm": "frozen_bn", "backbone_layer": "layer4"}
+ACT_TRUNK_L3 = {**ACT_TRUNK, "backbone_layer": "layer3"}  # the same ResNet, one stage shorter: a 6x8 map at 96x128
 
 # The trained networks a row's chunks or u come from, with the policy class family that loads them.
 NETWORKS: dict[str, str] = {
@@ -82,6 +85,7 @@ NETWORKS: dict[str, str] = {
     "vib_tokens_narrow": "vib",  # and with its posteriors starting at sigma ~ 0.05 (NARROW_LOGVAR_INIT)
     "vib_tokens_narrow_beta0": "vib",  # and that start with beta = 0
     "vib_tokens_narrow_act_trunk": "vib",  # and that start on ACT's trunk (frozen batch norm, to layer4)
+    "vib_tokens_narrow_act_trunk_l3": "vib",  # and on that trunk cut after layer3
     "act_like_vib_nofloor": "act",  # act_like_vib with the normalization floor off (a control)
 }
 CHOSEN = "chosen"  # a row whose run time is chosen on validation episodes among the benchmark's `runtimes`
@@ -135,12 +139,18 @@ VARIANTS: dict[str, Variant] = {
         CHOSEN,
         "vib_tokens_narrow_act_trunk",
     ),
+    "vib_tokens_narrow_act_trunk_l3": Variant(
+        "VIB tokens, narrow start, ACT's trunk to layer3",
+        "vib_tokens_narrow_act_trunk_l3",
+        CHOSEN,
+        "vib_tokens_narrow_act_trunk_l3",
+    ),
 }
 TABLE_I = ("act", "act_te", "vib", "vib_queue", "act_u", "act_rnd", "vib_wo_u", "vib_rnd")
 COMPARISON = ("act_chosen", "act_like_vib", "vib_beta0", "vib_chosen")
 TOKEN_COMPARISON = (
     "act_chosen", "act_like_vib", "act_like_vib_nofloor", "vib_tokens_beta0", "vib_tokens", "vib_tokens_narrow",
-    "vib_tokens_narrow_beta0", "vib_tokens_narrow_act_trunk", "vib_chosen",
+    "vib_tokens_narrow_beta0", "vib_tokens_narrow_act_trunk", "vib_tokens_narrow_act_trunk_l3", "vib_chosen",
 )  # fmt: skip
 _RUNTIME_MODES = {"queue": "none", "act": "act", "eq6": "uncertainty"}
 

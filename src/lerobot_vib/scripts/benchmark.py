@@ -74,6 +74,7 @@ from ..sim import env_config  # noqa: F401  (registers --env.type=aloha_fast and
 from ..sim.perturbations import CONDITIONS, SCENE_CONDITIONS
 from ..variants import (
     ACT_TRUNK,
+    ACT_TRUNK_L3,
     CHOSEN,
     COMPARISON,
     NARROW_LOGVAR_INIT,
@@ -366,6 +367,7 @@ def train_command(network: str, cfg: BenchmarkConfig, out: Path, seed: int) -> l
             "vib_tokens_narrow": narrow,
             "vib_tokens_narrow_beta0": [*narrow, "--policy.beta=0"],
             "vib_tokens_narrow_act_trunk": [*narrow, *(f"--policy.{k}={v}" for k, v in ACT_TRUNK.items())],
+            "vib_tokens_narrow_act_trunk_l3": [*narrow, *(f"--policy.{k}={v}" for k, v in ACT_TRUNK_L3.items())],
         }[network]
         return [_bin("lerobot-train"), f"--config_path={cfg.preset}", "--policy.encoder=tokens", *extra, *common]
     if network not in ("act", "act_like_vib", "act_like_vib_nofloor"):
