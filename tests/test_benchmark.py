@@ -480,11 +480,13 @@ def test_the_token_comparison_trains_the_token_network_beside_the_same_act_rows_
     )
     assert cfg.variants == [
         "act_chosen", "act_like_vib", "act_like_vib_nofloor", "vib_tokens_beta0", "vib_tokens", "vib_tokens_narrow",
-        "vib_tokens_narrow_beta0", "vib_tokens_narrow_act_trunk", "vib_tokens_narrow_act_trunk_l3", "vib_chosen",
+        "vib_tokens_narrow_beta0", "vib_tokens_narrow_act_trunk", "vib_tokens_narrow_act_trunk_l3",
+        "vib_tokens_narrow_act_trunk_l2", "vib_tokens_narrow_l3", "vib_chosen",
     ]  # fmt: skip
     networks = {
         "act", "act_like_vib", "act_like_vib_nofloor", "vib_tokens_beta0", "vib_tokens", "vib_tokens_narrow",
-        "vib_tokens_narrow_beta0", "vib_tokens_narrow_act_trunk", "vib_tokens_narrow_act_trunk_l3", "vib",
+        "vib_tokens_narrow_beta0", "vib_tokens_narrow_act_trunk", "vib_tokens_narrow_act_trunk_l3",
+        "vib_tokens_narrow_act_trunk_l2", "vib_tokens_narrow_l3", "vib",
     }  # fmt: skip
     assert set(cfg.networks()) == networks
     # the control: ACT + VIB's trunk and weight average with the normalization floor off, and only that
@@ -513,6 +515,13 @@ def test_the_token_comparison_trains_the_token_network_beside_the_same_act_rows_
     # and that trunk one stage shorter: the layer flag alone differs
     trunk3 = benchmark.train_command("vib_tokens_narrow_act_trunk_l3", cfg, tmp_path / "t", seed=1000)
     assert [a.replace("layer3", "layer4") for a in trunk3] == trunk
+    # and at VIB's depth: again the layer flag alone
+    trunk2 = benchmark.train_command("vib_tokens_narrow_act_trunk_l2", cfg, tmp_path / "t", seed=1000)
+    assert [a.replace("layer2", "layer4") for a in trunk2] == trunk
+    # VIB's own trunk one stage deeper: the narrow start plus the layer flag, its normalization left as the preset's
+    deeper = benchmark.train_command("vib_tokens_narrow_l3", cfg, tmp_path / "t", seed=1000)
+    assert [a for a in deeper if a != "--policy.backbone_layer=layer3"] == narrow
+    assert "--policy.backbone_layer=layer3" in deeper and not any("backbone_norm" in a for a in deeper)
     asked = BenchmarkConfig(
         dataset=DatasetConfig(repo_id="x"), env=ArmGraspEnvConfig(), output_dir=tmp_path, variants=["vib_tokens_narrow"]
     )

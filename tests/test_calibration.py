@@ -493,8 +493,9 @@ def test_calibrate_command_sets_gamma_from_rollouts_in_both_configs(tiny_checkpo
     assert VIBPolicy.from_pretrained(ckpt).stop_threshold() == 10.0
 
 
+@pytest.mark.parametrize("threshold", [None, "std_band"])
 def test_calibrate_command_sets_a_time_indexed_band_from_the_rollouts_trace_by_default(
-    tiny_checkpoint, tiny_dataset_root, tmp_path
+    tiny_checkpoint, tiny_dataset_root, tmp_path, threshold
 ):
     import shutil
 
@@ -511,13 +512,14 @@ def test_calibrate_command_sets_a_time_indexed_band_from_the_rollouts_trace_by_d
         f"{e},{100 + e},{t},{u * r_bar},{u},False,False" for e, trace in enumerate(traces) for t, u in enumerate(trace)
     ]
     (tmp_path / "uncertainty_trace.csv").write_text("\n".join(rows) + "\n")
+    flag = [f"--threshold={threshold}"] if threshold else []
     log = run([str(BIN / "lerobot-vib-calibrate"), f"--policy.path={ckpt}", f"--rollouts={info}",
-               "--conformal_alpha=0.1", "--in_place=true"])  # fmt: skip
+               "--conformal_alpha=0.1", "--in_place=true", *flag])  # fmt: skip
     assert "time-indexed band over 6 steps" in log
     config = json.loads((ckpt / "config.json").read_text())["calibration"]
     band = config["gamma_band"]
-    assert config["gamma_method"] == "time_band_rollouts" and len(band) == 6
-    assert band[0] > 3.0 and band[3] < 1.2  # a u of 2 stops late in a rollout, not at its start
+    assert config["gamma_method"] == f"{threshold or 'time_band'}_rollouts" and len(band) == 6
+    assert band[0] > 3.0 and band[3] < 1.5  # a u of 2 stops late in a rollout, not at its start
     policy = VIBPolicy.from_pretrained(ckpt)
     assert [policy.stop_threshold(step=t) for t in (0, 3, 99)] == [band[0], band[3], band[5]]
 

@@ -73,7 +73,7 @@ def test_a_monitor_that_never_fires_has_tpr_0_tnr_1_and_no_detection_time():
     assert (metrics.tpr, metrics.tnr, metrics.detection_time, metrics.median_lead_time) == (0.0, 1.0, None, None)
 
 
-@pytest.mark.parametrize("threshold", ["constant", "band"])
+@pytest.mark.parametrize("threshold", ["constant", "band", "std_band"])
 def test_thresholds_are_set_only_on_successful_clean_rollouts(threshold):
     clean = successes(30)
     monitor = Monitor(("a",), window=5, threshold=threshold)
@@ -86,7 +86,7 @@ def test_thresholds_are_set_only_on_successful_clean_rollouts(threshold):
         calibrate_monitor(monitor, [*others, *successes(3)], 0.1)
 
 
-@pytest.mark.parametrize("threshold", ["constant", "band"])
+@pytest.mark.parametrize("threshold", ["constant", "band", "std_band"])
 def test_a_successful_clean_episode_alarms_at_most_alpha_of_the_time(threshold):
     # Exchangeable successes: over many draws of calibration and new episodes, the false-alarm rate <= alpha.
     alpha, alarms, trials = 0.2, 0, 300

@@ -3,7 +3,15 @@
 import numpy as np
 import pytest
 
-from lerobot_vib.metrics import auroc, first_crossing, roc_curve, stop_metrics, time_indexed_band, wilson_interval
+from lerobot_vib.metrics import (
+    auroc,
+    first_crossing,
+    roc_curve,
+    std_band,
+    stop_metrics,
+    time_indexed_band,
+    wilson_interval,
+)
 
 
 def test_auroc_counts_ordered_pairs_and_half_ties():
@@ -55,6 +63,29 @@ def test_time_indexed_band_is_the_conformal_level_times_the_clean_shape():
     np.testing.assert_allclose(time_indexed_band(shape, level, alpha=0.5), [3, 6, 3])
     # the shape continues with its last value where no shape episode reached
     np.testing.assert_allclose(time_indexed_band([[1, 2]], [[1, 2, 4]], alpha=0.5), [2, 4, 4])
+
+
+def test_std_band_is_the_clean_mean_plus_the_conformal_level_of_clean_standard_deviations():
+    shape = [[1, 2, 1], [3, 4, 1]]  # mu = 2, 3, 1; s = sqrt(2), sqrt(2), 0 (floored)
+    level = [[2, 3, 1], [2, 3 + 2 * np.sqrt(2), 1]]  # max z: 0 and 2; alpha 0.5 with 2 scores takes the 2nd
+    band = std_band(shape, level, alpha=0.5)
+    np.testing.assert_allclose(band[:2], [2 + 2 * np.sqrt(2), 3 + 2 * np.sqrt(2)])
+    assert 1 < band[2] < 1.01  # where every clean episode agrees, a small difference is already above the band
+    # steps fewer than two shape episodes reached keep the last mean and deviation
+    np.testing.assert_allclose(std_band([[1, 2], [3, 4, 9]], [[2, 3]], alpha=0.5)[1:], [3, 3])
+    with pytest.raises(ValueError, match="two shape episodes"):
+        std_band([[1, 2]], level, alpha=0.5)
+
+
+def test_a_scene_wrong_from_the_start_crosses_the_std_band_at_once_and_the_proportional_band_only_late():
+    # clean u: about 1 at every step, and in every third episode a spike of 10 at step 20 (a grasp seen closer):
+    # the proportional band's one level q must cover the spike's ratio to the mean, so it is wide at every step;
+    # a scene wrong from the start (a black camera) doubles u throughout
+    rng = np.random.default_rng(0)
+    clean = [1 + 0.05 * rng.random(40) + np.where(np.arange(40) == 20, 10.0 * (i % 3 == 0), 0) for i in range(20)]
+    wrong = np.full(40, 2.0)
+    assert first_crossing(wrong, std_band(clean[:10], clean[10:], 0.1)) == 0
+    assert first_crossing(wrong, time_indexed_band(clean[:10], clean[10:], 0.1)) is None
 
 
 def test_detection_delay_and_early_stops_on_scripted_traces():

@@ -156,8 +156,9 @@ class CalibrationConfig:
         rate_std: Standard deviation of the rate over those frames.
         rate_quantiles: Quantiles of the rate, keyed by level ("0.5", "0.9", ...).
         gamma: The calibrated stop threshold on u.
-        gamma_method: "mean_plus_2std" (paper), "conformal" (held-out dataset episodes) or "conformal_rollouts"
-            (clean rollouts of the policy, `lerobot-vib-calibrate --rollouts`).
+        gamma_method: "mean_plus_2std" (paper), "conformal" (held-out dataset episodes), "conformal_rollouts"
+            (clean rollouts of the policy, `lerobot-vib-calibrate --rollouts`), or "time_band_rollouts" /
+            "std_band_rollouts" (a time-indexed band from such rollouts, `gamma_band`).
         conformal_alpha: Target per-episode false-stop rate of the conformal threshold.
         conformal_episodes: The held-out episodes the conformal threshold was computed on.
         rollout_seeds: The env seeds of the rollouts a "conformal_rollouts" gamma was computed on.
@@ -173,7 +174,7 @@ class CalibrationConfig:
         gamma_score: The score `gamma` was set on (None: "rate", as every calibration before scores existed).
         gamma_band: A time-indexed threshold, one value per episode step (the last one holds after it): at step
             t the stop threshold is gamma_band[t] instead of `gamma` (`lerobot-vib-calibrate --rollouts=...
-            --threshold=time_band`; `gamma` then holds its largest value). u is not equally high at every
+            --threshold=time_band` or `std_band`; `gamma` then holds its largest value). u is not equally high at every
             phase of a task, so one threshold for all steps is either late where u is low or trips where it
             is high.
         frames_above_gamma: Fraction of the calibration frames with u > gamma (None for a gamma from rollouts).

@@ -21,8 +21,12 @@ Calibration, by split-conformal prediction on successful clean rollouts only, at
     constant   tau   = the ceil((n + 1)(1 - alpha))-th smallest of max_t m_t over the n calibration episodes
     band       tau_t = q b_t: b_t the mean of m_t over the first half of the calibration episodes (the
                shape), q the conformal threshold of max_t m_t / b_t over the second half
-               (metrics.time_indexed_band), a time-varying band as FAIL-Detect calibrates one; the halves
-               `lerobot-vib-calibrate --rollouts` takes, so that the stop it sets is the one measured here
+               (metrics.time_indexed_band); the halves `lerobot-vib-calibrate --rollouts` takes, so that the
+               stop it sets is the one measured here
+    std_band   tau_t = mu_t + q s_t: the mean and standard deviation of m_t over the first half, q the
+               conformal threshold of max_t (m_t - mu_t) / s_t over the second (metrics.std_band), the band
+               FAIL-Detect calibrates: tight in the steps where successful episodes agree, so a scene that is
+               wrong from the start can alarm at once
 
 so that a successful clean episode exchangeable with the calibration ones alarms with probability at most
 alpha. The members of an AND are each calibrated at alpha; the AND alarms no more often than any of them. The
@@ -45,10 +49,11 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from .calibration import conformal_gamma, conformal_min_scores
-from .metrics import time_indexed_band
+from .metrics import BANDS
 
 AGGREGATES = ("mean", "sum")
-THRESHOLDS = ("constant", "band")
+THRESHOLDS = ("constant", "band", "std_band")
+BAND_FLAGS = {"constant": "max", "band": "time_band", "std_band": "std_band"}  # as `lerobot-vib-calibrate --threshold`
 CLEAN = "normal"
 
 
@@ -283,7 +288,7 @@ def calibrate_monitor(
         share = alpha / len(monitor.members)
         return CalibratedAnyOf(monitor, alpha, [calibrate_monitor(m, episodes, share) for m in monitor.members])
     calib = calibration_episodes(episodes, monitor.scores)
-    needed = conformal_min_scores(alpha) * (2 if monitor.threshold == "band" else 1)
+    needed = conformal_min_scores(alpha) * (1 if monitor.threshold == "constant" else 2)
     if len(calib) < needed:
         raise CalibrationError(
             f"{monitor.name} at alpha={alpha} needs {needed} successful clean rollouts; got {len(calib)}."
@@ -300,7 +305,10 @@ def calibrate_monitor(
             if min(float(t.min()) for t in traces) <= 0:
                 raise CalibrationError(f"A band needs a positive score; {score!r} is not on every step.")
             half = len(traces) // 2  # as `lerobot-vib-calibrate --rollouts` splits them: the same band
-            thresholds[score] = time_indexed_band(traces[:half], traces[half:], alpha)
+            try:
+                thresholds[score] = BANDS[BAND_FLAGS[monitor.threshold]](traces[:half], traces[half:], alpha)
+            except ValueError as e:
+                raise CalibrationError(f"{monitor.name}: {e}") from e
     return CalibratedMonitor(monitor, alpha, thresholds, len(calib), [e.seed for e in calib])
 
 

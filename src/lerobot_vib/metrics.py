@@ -18,6 +18,16 @@
   so an in-distribution episode crosses the band with probability at most alpha (if exchangeable with the
   level episodes), while the band stays high where clean episodes are uncertain anyway (their first steps).
   Episodes longer than the band use its last value. Beyond the paper, as failure detectors do (FAIL-Detect).
+  The standard-deviation band is FAIL-Detect's own modulation (functional conformal prediction):
+
+      mu_t, s_t = mean and standard deviation over the shape episodes alive at step t of u_t
+      z_i     = max_t (u_{i,t} - mu_t) / s_t   over the level episodes i
+      gamma_t = mu_t + q s_t,   q = the split-conformal threshold of the z_i at level alpha
+
+  It is tight where clean episodes agree and wide where they scatter (a grasp), where the proportional band
+  is wide wherever clean u is high; steps fewer than two shape episodes reached keep the last mu_t and s_t,
+  and s_t is floored at STD_FLOOR of the mean of mu so that a step where every shape episode agrees does not
+  make any difference an alarm.
 - False-stop rate: the fraction of clean episodes that stop. On occlusion episodes, a stop before the
   occluder enters is a false stop; otherwise the detection delay is the stop step minus the entry step.
 """
@@ -119,6 +129,39 @@ def time_indexed_band(
         raise ValueError("The band's shape must be positive (u is a ratio of non-negative scores).")
     scores = [float(np.max(np.asarray(t, dtype=np.float64) / b[: len(t)])) for t in level_traces]
     return conformal_gamma(np.array(scores), alpha) * b
+
+
+STD_FLOOR = 1e-3  # std_band's least s_t, as a share of mu's mean over the steps
+
+
+def std_band(
+    shape_traces: Sequence[Sequence[float]], level_traces: Sequence[Sequence[float]], alpha: float
+) -> np.ndarray:
+    """gamma_t = mu_t + q * s_t (module docstring): mu and s from the shape episodes, q conformal over the level
+    episodes. Raised if the band is not positive where a stop reads it (u is a ratio of non-negative scores)."""
+    if len(shape_traces) < 2 or not level_traces:
+        raise ValueError("The standard-deviation band needs two shape episodes or more, and level episodes.")
+    length = max(len(t) for t in [*shape_traces, *level_traces])
+    mu, sd = np.empty(length), np.empty(length)
+    for t in range(length):
+        alive = [float(trace[t]) for trace in shape_traces if len(trace) > t]
+        if len(alive) >= 2:
+            mu[t], sd[t] = np.mean(alive), np.std(alive, ddof=1)
+        elif t == 0:
+            raise ValueError("Fewer than two shape episodes have a first step.")
+        else:
+            mu[t], sd[t] = mu[t - 1], sd[t - 1]
+    sd = np.maximum(sd, STD_FLOOR * abs(float(mu.mean())))
+    if not (sd > 0).all():
+        raise ValueError("The shape episodes' u is zero at every step: the band has no scale.")
+    scores = [float(np.max((np.asarray(t, dtype=np.float64) - mu[: len(t)]) / sd[: len(t)])) for t in level_traces]
+    band = mu + conformal_gamma(np.array(scores), alpha) * sd
+    if not (band > 0).all():
+        raise ValueError("The standard-deviation band falls to zero or below at some step: use the proportional band.")
+    return band
+
+
+BANDS = {"time_band": time_indexed_band, "std_band": std_band}  # a time-varying threshold's kinds, by flag
 
 
 @dataclass

@@ -65,6 +65,8 @@ _GAMMA_METHODS = {
     "that share of clean rollouts should stop",
     "time_band_rollouts": "a time-indexed band (one threshold per episode step) from {n} clean rollouts at "
     "alpha = {alpha}; gamma is its largest value",
+    "std_band_rollouts": "a time-indexed band (mean + q standard deviations of u per episode step) from {n} "
+    "clean rollouts at alpha = {alpha}; gamma is its largest value",
 }
 
 

@@ -43,6 +43,10 @@ memory instead (`--policy.encoder=tokens`, token_network.py), beside the same AC
                       VIB's trunk costs the token network where `act_like_vib` lost to ACT (unseen block, colour)
     vib_tokens_narrow_act_trunk_l3  ACT's trunk cut after layer3: 48 image cells instead of 12, to see whether
                       its success and a map fine enough to place an occluder go together
+    vib_tokens_narrow_act_trunk_l2  ACT's normalization (none, from scratch) at VIB's depth, layer2: with the
+                      row below, which of the two differences between the trunks carries success and which the stop
+    vib_tokens_narrow_l3  VIB's trunk (group norm) cut after layer3 instead of layer2: VIB's normalization at a
+                      depth that kept ACT's success
 
 and one control: `act_like_vib_nofloor`, ACT + VIB's trunk and weight average with the normalization floor
 off, which says whether ACT loses anything to the floor that VIB's pooled network lost (the contact cue).
@@ -73,6 +77,8 @@ NARROW_LOGVAR_INIT = -6.0  # vib_tokens_narrow's posterior_logvar_init: sigma ~ 
 # LeRobot's ACT trunk (ResNet-18 with frozen batch norm, cut after layer4), as VIBConfig flags
 ACT_TRUNK = {"backbone_norm": "frozen_bn", "backbone_layer": "layer4"}
 ACT_TRUNK_L3 = {**ACT_TRUNK, "backbone_layer": "layer3"}  # the same ResNet, one stage shorter: a 6x8 map at 96x128
+ACT_TRUNK_L2 = {**ACT_TRUNK, "backbone_layer": "layer2"}  # and at VIB's depth: a 12x16 map, 192 cells
+VIB_TRUNK_L3 = {"backbone_layer": "layer3"}  # VIB's trunk (group norm from the preset) one stage deeper
 
 # The trained networks a row's chunks or u come from, with the policy class family that loads them.
 NETWORKS: dict[str, str] = {
@@ -86,6 +92,8 @@ NETWORKS: dict[str, str] = {
     "vib_tokens_narrow_beta0": "vib",  # and that start with beta = 0
     "vib_tokens_narrow_act_trunk": "vib",  # and that start on ACT's trunk (frozen batch norm, to layer4)
     "vib_tokens_narrow_act_trunk_l3": "vib",  # and on that trunk cut after layer3
+    "vib_tokens_narrow_act_trunk_l2": "vib",  # and after layer2, VIB's depth
+    "vib_tokens_narrow_l3": "vib",  # the narrow start on VIB's trunk cut after layer3
     "act_like_vib_nofloor": "act",  # act_like_vib with the normalization floor off (a control)
 }
 CHOSEN = "chosen"  # a row whose run time is chosen on validation episodes among the benchmark's `runtimes`
@@ -145,12 +153,22 @@ VARIANTS: dict[str, Variant] = {
         CHOSEN,
         "vib_tokens_narrow_act_trunk_l3",
     ),
+    "vib_tokens_narrow_act_trunk_l2": Variant(
+        "VIB tokens, narrow start, ACT's trunk to layer2",
+        "vib_tokens_narrow_act_trunk_l2",
+        CHOSEN,
+        "vib_tokens_narrow_act_trunk_l2",
+    ),
+    "vib_tokens_narrow_l3": Variant(
+        "VIB tokens, narrow start, VIB's trunk to layer3", "vib_tokens_narrow_l3", CHOSEN, "vib_tokens_narrow_l3"
+    ),
 }
 TABLE_I = ("act", "act_te", "vib", "vib_queue", "act_u", "act_rnd", "vib_wo_u", "vib_rnd")
 COMPARISON = ("act_chosen", "act_like_vib", "vib_beta0", "vib_chosen")
 TOKEN_COMPARISON = (
     "act_chosen", "act_like_vib", "act_like_vib_nofloor", "vib_tokens_beta0", "vib_tokens", "vib_tokens_narrow",
-    "vib_tokens_narrow_beta0", "vib_tokens_narrow_act_trunk", "vib_tokens_narrow_act_trunk_l3", "vib_chosen",
+    "vib_tokens_narrow_beta0", "vib_tokens_narrow_act_trunk", "vib_tokens_narrow_act_trunk_l3",
+    "vib_tokens_narrow_act_trunk_l2", "vib_tokens_narrow_l3", "vib_chosen",
 )  # fmt: skip
 _RUNTIME_MODES = {"queue": "none", "act": "act", "eq6": "uncertainty"}
 

@@ -66,7 +66,7 @@ from tqdm import tqdm
 
 from ..calibration import mean_plus_2std_gamma
 from ..configuration_vib import VIBConfigError
-from ..failure import AnyOf, CalibratedAnyOf, CalibratedMonitor, Monitor, evaluate, monitor_from_dict
+from ..failure import BAND_FLAGS, AnyOf, CalibratedAnyOf, CalibratedMonitor, Monitor, evaluate, monitor_from_dict
 from ..modeling_vib import VIBPolicy
 from ..provenance import env_record, training_recording
 from ..rnd import RND, RNDConfig, train_rnd
@@ -74,6 +74,7 @@ from ..sim import env_config  # noqa: F401  (registers --env.type=aloha_fast and
 from ..sim.perturbations import CONDITIONS, SCENE_CONDITIONS
 from ..variants import (
     ACT_TRUNK,
+    ACT_TRUNK_L2,
     ACT_TRUNK_L3,
     CHOSEN,
     COMPARISON,
@@ -81,6 +82,7 @@ from ..variants import (
     NETWORKS,
     TOKEN_COMPARISON,
     VARIANTS,
+    VIB_TRUNK_L3,
     build_variant,
     parse_runtime,
     queue_steps,
@@ -368,6 +370,8 @@ def train_command(network: str, cfg: BenchmarkConfig, out: Path, seed: int) -> l
             "vib_tokens_narrow_beta0": [*narrow, "--policy.beta=0"],
             "vib_tokens_narrow_act_trunk": [*narrow, *(f"--policy.{k}={v}" for k, v in ACT_TRUNK.items())],
             "vib_tokens_narrow_act_trunk_l3": [*narrow, *(f"--policy.{k}={v}" for k, v in ACT_TRUNK_L3.items())],
+            "vib_tokens_narrow_act_trunk_l2": [*narrow, *(f"--policy.{k}={v}" for k, v in ACT_TRUNK_L2.items())],
+            "vib_tokens_narrow_l3": [*narrow, *(f"--policy.{k}={v}" for k, v in VIB_TRUNK_L3.items())],
         }[network]
         return [_bin("lerobot-train"), f"--config_path={cfg.preset}", "--policy.encoder=tokens", *extra, *common]
     if network not in ("act", "act_like_vib", "act_like_vib_nofloor"):
@@ -809,7 +813,7 @@ def _shipped_policy(
     recorded = training_recording(source)
     calibration = gamma_from_rollouts(
         calibration, info, cfg.alpha, f"{variant}'s validation rollouts (seed {seed})", score,
-        threshold="max" if monitor.threshold == "constant" else "time_band", traces=traces[score],
+        threshold=BAND_FLAGS[monitor.threshold], traces=traces[score],
         policy_config=config, recording=recorded[1] if recorded else None, window=primary.window,
         window_aggregate=primary.aggregate, and_traces={name: traces[name] for name in partners},
         episodes="successes", or_traces={m.scores[0]: traces[m.scores[0]] for m in others} or None,

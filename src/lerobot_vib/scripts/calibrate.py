@@ -53,7 +53,7 @@ from ..calibration import (
 )
 from ..configuration_vib import CalibrationConfig, VIBConfigError
 from ..failure import windowed
-from ..metrics import time_indexed_band
+from ..metrics import BANDS
 from ..modeling_vib import VIBPolicy
 from ..pooled_network import EncoderParts
 from ..processor_vib import vib_dataset_stats
@@ -93,7 +93,9 @@ class CalibrateConfig:
     batch_size: Frames per forward pass.
     threshold: With `rollouts` (None: "time_band"): "time_band", one threshold per episode step from the
         rollouts' per-step u (the best measured on the arm, docs/uncertainty.md; it needs twice the rollouts of
-        "max", 18 at alpha = 0.1), or "max", one gamma, the conformal threshold on each rollout's max u.
+        "max", 18 at alpha = 0.1), "std_band", the same with FAIL-Detect's band (mean + q standard deviations
+        per step, metrics.std_band: tight where clean rollouts agree), or "max", one gamma, the conformal
+        threshold on each rollout's max u.
     window: With `rollouts`: the stop reads u aggregated over each env's last `window` steps, and the threshold
         is set on that (`calibration.window`; failure.py's windowed monitors). 1: u itself.
     window_aggregate: "mean" or "sum" over the window.
@@ -177,8 +179,8 @@ class CalibrateConfig:
             if self.episodes is not None and (both := sorted(set(self.conformal_episodes) & set(self.episodes))):
                 raise VIBConfigError(f"Held-out conformal episodes must not be among `--episodes`: {both}.")
         if self.threshold is not None:
-            if self.threshold not in ("max", "time_band"):
-                raise VIBConfigError(f"`--threshold` must be max or time_band, got {self.threshold!r}.")
+            if self.threshold not in ("max", *BANDS):
+                raise VIBConfigError(f"`--threshold` must be one of max, {', '.join(BANDS)}, got {self.threshold!r}.")
             if self.rollouts is None:
                 raise VIBConfigError("`--threshold` sets gamma from rollouts: give `--rollouts=` too.")
         elif self.rollouts is not None:
@@ -485,9 +487,9 @@ def gamma_from_rollouts(
     or_window: int = 1,
 ) -> CalibrationConfig:
     """`calibration` with gamma = the split-conformal threshold on clean rollouts' per-episode max u of the
-    score the checkpoint reads u from (`expected_score`); with `threshold="time_band"`, the time-indexed band
-    from the rollouts' per-step u `traces` (metrics.time_indexed_band: the first half of the rollouts sets the
-    band's shape, the second half its conformal level).
+    score the checkpoint reads u from (`expected_score`); with `threshold="time_band"` or `"std_band"`, a
+    time-indexed band from the rollouts' per-step u `traces` (metrics.time_indexed_band, metrics.std_band: the
+    first half of the rollouts sets the band's shape, the second half its conformal level).
 
     Refused unless the rollouts are clean ones of this checkpoint: the stop off, no perturbation, the env's
     cameras and image size those of `policy_config`, its task and workspace those of the training `recording`
@@ -568,20 +570,24 @@ def gamma_from_rollouts(
                              window_aggregate)  # fmt: skip
     or_gammas = _and_gammas(calibration, info, or_traces or {}, score, len(scores), member_alpha, source, or_window,
                             window_aggregate, flag="--or_scores")  # fmt: skip
-    needed = conformal_min_scores(member_alpha) * (2 if threshold == "time_band" else 1)
+    is_band = threshold in BANDS
+    needed = conformal_min_scores(member_alpha) * (2 if is_band else 1)
     if len(scores) < needed:
         raise VIBConfigError(
-            f"A {'time-indexed band' if threshold == 'time_band' else 'conformal threshold'} at "
+            f"A {'time-indexed band' if is_band else 'conformal threshold'} at "
             f"alpha={member_alpha:.3g} needs "
             f"at least {needed} {what}; {source} has {len(scores)}."
-            + (" Evaluate more clean rollouts, or use `--threshold=max`." if threshold == "time_band" else "")
+            + (" Evaluate more clean rollouts, or use `--threshold=max`." if is_band else "")
         )
     band = None
-    if threshold == "time_band":
+    if is_band:
         if traces is None or len(traces) != len(scores):
             raise VIBConfigError(f"The time-indexed band needs the per-step u of every rollout in {source}.")
         half = len(traces) // 2
-        band = [float(g) for g in time_indexed_band(traces[:half], traces[half:], member_alpha)]
+        try:
+            band = [float(g) for g in BANDS[threshold](traces[:half], traces[half:], member_alpha)]
+        except ValueError as e:
+            raise VIBConfigError(f"No {threshold} from {source}: {e}") from e
         gamma = max(band)
         above = [bool(np.any(t > np.asarray(band)[: len(t)])) for t in traces]
     else:
@@ -602,7 +608,7 @@ def gamma_from_rollouts(
         calibration,
         gamma=gamma,
         gamma_band=band,
-        gamma_method="time_band_rollouts" if band else "conformal_rollouts",
+        gamma_method=f"{threshold}_rollouts" if band else "conformal_rollouts",
         gamma_score=score,
         conformal_alpha=alpha,
         conformal_episodes=None,
@@ -732,7 +738,7 @@ def _calibrate_on_rollouts(cfg: CalibrateConfig) -> CalibrationConfig:
     info = json.loads(Path(cfg.rollouts).read_text())
     traces, and_traces = None, None
     trace_file = Path(cfg.rollouts).with_name("uncertainty_trace.csv")
-    if cfg.threshold == "time_band" or cfg.window > 1 or cfg.and_scores or cfg.or_scores:
+    if cfg.threshold in BANDS or cfg.window > 1 or cfg.and_scores or cfg.or_scores:
         traces = read_traces(trace_file)
     if cfg.and_scores:
         and_traces = {name: read_traces(trace_file, f"u_{name}") for name in cfg.and_scores}

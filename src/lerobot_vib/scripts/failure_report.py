@@ -34,6 +34,7 @@ Nothing on the test seeds chooses anything.
 from __future__ import annotations
 
 import math
+from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
 
@@ -41,7 +42,9 @@ import numpy as np
 
 from ..calibration import conformal_min_scores
 from ..failure import (
+    BAND_FLAGS,
     CLEAN,
+    THRESHOLDS,
     AnyOf,
     CalibrationError,
     Episode,
@@ -236,9 +239,10 @@ def ship_rule(ranking: list[dict]) -> tuple[Monitor | AnyOf, str]:
     return ranking[0]["monitor"], BEST_BALANCED
 
 
-def failure_prediction(cfg, cells: dict, runtime_of) -> dict:
+def failure_prediction(cfg, cells: dict, runtime_of, thresholds: Sequence[str] = THRESHOLDS) -> dict:
     """results["failure_prediction"]: per scored row, the validation ranking, the shipped monitor and its test
-    metrics. `runtime_of(variant, seed)`: the row's chosen run time at that training seed."""
+    metrics. `runtime_of(variant, seed)`: the row's chosen run time at that training seed. `thresholds`: the
+    kinds of threshold the candidates may have (failure.THRESHOLDS)."""
     out = {}
     cells = dict(cells)
     for variant in cfg.variants:
@@ -271,7 +275,7 @@ def failure_prediction(cfg, cells: dict, runtime_of) -> dict:
             }
             continue
         names = sorted(set.intersection(*[set(e.scores) for eps in validation.values() for e in eps]))
-        candidates = [*candidate_monitors(names), *or_candidates(names)]
+        candidates = [*candidate_monitors(names, thresholds=thresholds), *or_candidates(names, thresholds=thresholds)]
         # The policy's stop runs any candidate with a constant threshold on its partners (an AND's or an OR's
         # first score may have a band): `lerobot-vib-calibrate --rollouts --window --and_scores|--or_scores` sets
         # it. The RND fitted on rollouts is measured beside them, not shipped: the policy's stop reads the RND
@@ -368,7 +372,7 @@ def ship_command(monitor: Monitor | AnyOf, alpha: float) -> str:
         f"--policy.uncertainty_score={m.scores[0]}` (the stop off; it records every score's u), then "
         "`lerobot-vib-calibrate --policy.path=<checkpoint> "
         f"--policy.uncertainty_score={m.scores[0]} --rollouts=<their uncertainty_info.json> --conformal_alpha={alpha} "
-        f"--threshold={'max' if m.threshold == 'constant' else 'time_band'} --window={m.window} "
+        f"--threshold={BAND_FLAGS[m.threshold]} --window={m.window} "
         f"--window_aggregate={m.aggregate}{partners} --rollout_episodes=successes`: the policy's stop then runs "
         "this monitor, its thresholds set on the successful rollouts as here."
     )
@@ -418,8 +422,9 @@ def markdown(cfg, failure: dict, labels: dict[str, str]) -> list[str]:
         lines += [
             f"The shipped monitor is **{result['shipped']['name']}** at alpha = {cfg.alpha}: among "
             f"{result['candidates']} candidates (each score alone, every AND of two and every OR of two; "
-            "windows 1, 5, 10 steps; mean or sum; a constant threshold or a time-varying band, the band on the "
-            "first score only, as the policy's stop runs them; an OR's k members each at alpha / k), "
+            "windows 1, 5, 10 steps; mean or sum; a constant threshold or a time-varying band, proportional to "
+            "the mean or FAIL-Detect's mean + q standard deviations, the band on the first score only, as the "
+            "policy's stop runs them; an OR's k members each at alpha / k), "
             + (
                 "the one that alarms earliest in failed episodes among those with TPR and TNR >= 0.9 and at most "
                 "10% of successful noise and colour-jitter rollouts alarmed"
