@@ -23,6 +23,7 @@ both runs alike (it never ships).
         ${N}_2seeds_cpu_2core,${N}_3seeds_cpu_2core,${N}_s3000_cpu_2core:vib_tokens_narrow \
         $B/tokens_act_trunk_2seeds_cpu_2core:vib_tokens_narrow_act_trunk \
         $B/tokens_act_trunk_l3_2seeds_cpu_2core:vib_tokens_narrow_act_trunk_l3 \
+        $B/tokens_vib_trunk_l3_s1000_cpu_2core:vib_tokens_narrow_l3 \
         --output benchmarks/results/failure_bands_cpu_2core/report.md
 """
 
