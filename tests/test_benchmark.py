@@ -659,7 +659,7 @@ def test_each_traced_score_gets_its_own_offline_stop_and_only_the_one_that_rises
     assert stops["rises"]["conformal"]["in_time"] == stops["rises"]["conformal"]["occlusion_stops"] == entered
     assert stops["rises"]["conformal"]["delays"] == [0] * entered
     assert stops["blind"]["conformal"]["in_time"] == 0
-    assert set(stops["rises"]) == {"conformal", "band"}  # 20 rollouts: enough for the band at alpha 0.1
+    assert set(stops["rises"]) == {"conformal", "band", "std_band"}  # 20 rollouts: enough for both bands at alpha 0.1
     lines = benchmark_report.score_stop_table({"vib_tokens": {"1000": {"score_stops": stops}}}, 0.1)
     assert any("| rises | conformal |" in line for line in lines)
 
@@ -686,8 +686,9 @@ def test_the_score_is_chosen_on_validation_and_one_that_stops_clean_rollouts_too
 def test_a_score_that_is_zero_at_some_step_has_no_band_and_says_so():
     calibration = {"u": [[0.0, 1.0, 1.0]] * 40}
     gammas = benchmark_report.thresholds(calibration, None, 0.1)
-    assert gammas["band"] is None and gammas["conformal"] == 1.0
+    assert gammas["band"] is None and gammas["std_band"] is None and gammas["conformal"] == 1.0
     assert any("no band" in note for note in gammas["notes"])
+    assert any("no std band" in note for note in gammas["notes"])
 
 
 def test_the_shipped_checkpoint_stops_as_the_report_measured_and_its_card_says_what_it_predicted(

@@ -23,14 +23,16 @@ import numpy as np
 
 from ..calibration import conformal_gamma, conformal_min_scores
 from ..configuration_vib import DEFAULT_SCORE
-from ..metrics import auroc, roc_curve, stop_metrics, time_indexed_band, wilson_interval
+from ..metrics import auroc, roc_curve, std_band, stop_metrics, time_indexed_band, wilson_interval
 from ..sim.perturbations import CONDITIONS, draw_scene_episode
 from ..variants import CHOSEN, VARIANTS
 from . import failure_report
 
 logger = logging.getLogger(__name__)
 
-THRESHOLDS = ("mean_2std", "conformal", "band")
+THRESHOLDS = ("mean_2std", "conformal", "band", "std_band")
+# The thresholds a score's offline stop may read, all set on clean validation rollouts.
+STOP_THRESHOLDS = ("conformal", "band", "std_band")
 # An occlusion stopped this many steps after the occluder's entry or sooner counts as caught in time.
 STOP_WITHIN = 5
 
@@ -65,7 +67,7 @@ def thresholds(calibration: dict, train_gamma: float | None, alpha: float, score
     """gamma of each kind from the clean calibration rollouts of one row (metrics.py), on the u the row recorded
     or, with `score`, on that traced score's u."""
     traces = calibration["u"] if score is None else calibration["scores"][score]
-    out: dict[str, Any] = {"mean_2std": train_gamma, "conformal": None, "band": None, "notes": []}
+    out: dict[str, Any] = {"mean_2std": train_gamma, "conformal": None, "band": None, "std_band": None, "notes": []}
     needed = conformal_min_scores(alpha)
     if len(traces) >= needed:
         out["conformal"] = conformal_gamma(np.array([max(t) for t in traces]), alpha)
@@ -77,6 +79,10 @@ def thresholds(calibration: dict, train_gamma: float | None, alpha: float, score
             out["band"] = time_indexed_band(traces[:half], traces[half:], alpha).round(5).tolist()
         except ValueError as e:  # a score that is 0 at some step (chunk disagreement at the first) has no band
             out["notes"].append(f"no band: {e}")
+        try:  # FAIL-Detect's band: the same split, its shape from the first half and q from the second
+            out["std_band"] = std_band(traces[:half], traces[half:], alpha).round(5).tolist()
+        except ValueError as e:
+            out["notes"].append(f"no std band: {e}")
     else:
         out["notes"].append(f"the band needs 1 + {needed} calibration episodes at alpha={alpha}, got {len(traces)}")
     return out
@@ -191,7 +197,7 @@ def score_stops(cells: dict[str, dict], calibration: dict, alpha: float) -> dict
         gammas = thresholds(calibration, None, alpha, score)
         out[score] = {
             name: {"gamma": gammas[name], **_stop_row(clean, occluded, gammas[name], score)}
-            for name in ("conformal", "band")
+            for name in STOP_THRESHOLDS
             if gammas[name] is not None
         }
     return out
@@ -519,7 +525,8 @@ def _markdown(cfg, results: dict, plots: list[str]) -> str:
             "A rollout stops at its first step with u above the threshold. False stops: clean (normal) episodes "
             "that stop. On occlusion: stops at or after the occluder's entry, stops before it (early, also "
             "false), and the mean delay in steps from entry to stop. Thresholds: the paper's mean + 2 std of "
-            "the training frames; split-conformal on the validation rollouts' max u; the time-indexed band.",
+            "the training frames; split-conformal on the validation rollouts' max u; the time-indexed band; "
+            "FAIL-Detect's band (mean + q standard deviations per step).",
             "",
             "| variant, training seed | threshold | gamma | false stops (clean) | occlusion stops | early | "
             "mean delay |",
@@ -608,8 +615,9 @@ def score_stop_table(uncertainty: dict, alpha: float) -> list[str]:
         "",
         f"## The stop with each traced score, judged offline (alpha = {alpha})",
         "",
-        "Each score's conformal threshold on the max u and its time-indexed band, set on the same clean validation "
-        f"rollouts as above. In time: stopped at most {STOP_WITHIN} steps after the occluder entered. "
+        "Each score's conformal threshold on the max u, its time-indexed band and FAIL-Detect's standard-deviation "
+        "band (std_band), set on the same clean validation rollouts as above. In time: stopped at most "
+        f"{STOP_WITHIN} steps after the occluder entered. "
         f"`{DEFAULT_SCORE}` (bold) is the policy's default score; the band is `lerobot-vib-calibrate --rollouts`' "
         "default threshold.",
         "",
@@ -776,6 +784,8 @@ def _plots(cfg, cells: dict, results: dict, out: Path) -> list[str]:
             ax.axhline(th["conformal"], color="r", ls="--", lw=1, label="conformal")
         if th["band"] is not None:
             ax.plot(th["band"], color="r", lw=1, label="time-indexed band")
+        if th.get("std_band") is not None:
+            ax.plot(th["std_band"], color="m", lw=1, label="std band (FAIL-Detect)")
         ax.set_xlabel("step")
         ax.set_ylabel("u (log scale)")
         ax.set_yscale("log")
