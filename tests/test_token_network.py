@@ -104,6 +104,19 @@ def test_a_cell_whose_rate_falls_raises_the_low_map_score_and_not_the_map_score(
     torch.testing.assert_close(scores["map_score"], torch.tensor([0.0]))
 
 
+def test_a_cell_that_falls_and_one_that_rises_both_raise_the_abs_map_score():
+    mean, std = torch.ones(4), torch.full((4,), 0.5)
+    falls = torch.tensor([[1.0, 1.0, 1.0, -2.0]])  # 6 std below training
+    rises = torch.tensor([[1.0, 1.0, 1.0, 3.0]])  # 4 std above
+    for rates, expected in ((falls, 6.0), (rises, 4.0)):
+        scores = token_scores(torch.cat([torch.ones(1, 1), rates], 1), 1, mean, std)
+        torch.testing.assert_close(scores["abs_map_score"], torch.tensor([expected]))
+        # at k = 1 it is the larger of the two one-sided scores, which is how recorded traces give it back
+        torch.testing.assert_close(scores["abs_map_score"], torch.maximum(scores["map_score"], scores["low_map_score"]))
+    quiet = token_scores(torch.cat([torch.ones(1, 1), torch.ones(1, 4)], 1), 1, mean, std)
+    torch.testing.assert_close(quiet["abs_map_score"], torch.tensor([0.0]))
+
+
 def test_select_action_leaves_the_rate_map_and_every_token_score(policy):
     policy.reset()
     action = policy.select_action(make_batch(policy.config, with_action=False))
@@ -175,7 +188,7 @@ def test_lerobot_train_and_calibrate_give_the_token_network_its_map_statistics(t
     )
     calibrated = ckpt.with_name("pretrained_model_calibrated")
     means = json.loads((calibrated / "config.json").read_text())["calibration"]["score_means"]
-    assert {"image_rate", "state_rate", "map_score", "low_map_score", "embedding_rnd"} <= set(means)
+    assert {"image_rate", "state_rate", "map_score", "low_map_score", "abs_map_score", "embedding_rnd"} <= set(means)
     from lerobot.configs.policies import PreTrainedConfig
 
     config = PreTrainedConfig.from_pretrained(calibrated)

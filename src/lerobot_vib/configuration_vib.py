@@ -17,7 +17,7 @@ from lerobot.utils.constants import ACTION, OBS_STATE
 
 from .backbone import BACKBONE_LAYERS, BACKBONE_NORMS
 from .bottleneck import LOGVAR_MAX, LOGVAR_MIN
-from .scores import RND_INPUTS, SCORES, TOKEN_SCORES
+from .scores import MAP_SCORES, RND_INPUTS, SCORES, TOKEN_SCORES
 
 IMAGE_POOLINGS = ("spatial_softmax", "spatial_softmax_avg", "avg")
 POSITION_EMBEDDINGS = ("learned", "sinusoidal")
@@ -322,7 +322,8 @@ class VIBConfig(PreTrainedConfig):
             shows).
         n_decoder_layers: "tokens" only: layers of ACT's decoder (ACT's default 1); `n_layers` sets its encoder.
         map_top_k: "tokens" only: the "map_score" reduces the per-cell z-scores of the rate map by the mean of
-            its k largest (1: the maximum), "low_map_score" the negated z-scores likewise.
+            its k largest (1: the maximum), "low_map_score" the negated z-scores likewise and "abs_map_score"
+            their absolute values.
         vision_backbone: torchvision ResNet used for every camera (one shared trunk), as in ACT.
         pretrained_backbone_weights: Initial weights of the backbone: a torchvision weights name
             ("ResNet18_Weights.IMAGENET1K_V1", the default, as ACT; needs the torch hub cache or a network
@@ -385,10 +386,10 @@ class VIBConfig(PreTrainedConfig):
             "embedding_rnd": random network distillation on the policy's observation embedding;
             "chunk_disagreement": the spread of the overlapping chunks' candidates for the current step (decodes
             a chunk every step); the token network's "state_rate" (its state tokens' rate), "map_score" (the
-            rate map's largest cell z-score against each cell's training statistics) and "low_map_score" (the
-            largest fall below them). All but "rate" need `lerobot-vib-calibrate`, which computes their statistics
-            and fits the RND. The safety stop and Eq. 6 use this u; every available score is traced in
-            `last_step.scores`.
+            rate map's largest cell z-score against each cell's training statistics), "low_map_score" (the
+            largest fall below them) and "abs_map_score" (the largest move either way). All but "rate" need
+            `lerobot-vib-calibrate`, which computes their statistics and fits the RND. The safety stop and Eq. 6
+            use this u; every available score is traced in `last_step.scores`.
         rnd_input: The embedding "embedding_rnd" reads: "fused" (the fused feature the bottleneck sees, as
             FIPER's RND-OE) or "pooled" (the cameras' pooled trunk features and the normalized state).
         temporal_ensemble: How `select_action` turns chunks into one action. "none": ACT's action queue
@@ -640,7 +641,7 @@ class VIBConfig(PreTrainedConfig):
                 f"`uncertainty_score={self.uncertainty_score}` reads per-token rates, which only the token network "
                 "has: set `encoder=tokens`, or use another score."
             )
-        camera_scores = ("image_rate", "low_image_rate", "map_score", "low_map_score")
+        camera_scores = ("image_rate", "low_image_rate", *MAP_SCORES)
         if self.uncertainty_score in camera_scores and not self.image_features:
             raise ValueError(
                 f"`uncertainty_score={self.uncertainty_score}` reads the camera path, and this policy has no camera: "

@@ -40,12 +40,12 @@ from .bottleneck import Posterior
 
 SCORES = (
     "rate", "image_rate", "low_image_rate", "embedding_rnd", "chunk_disagreement", "state_rate", "map_score",
-    "low_map_score",
+    "low_map_score", "abs_map_score",
 )  # fmt: skip
 # Scores only the token network (`--policy.encoder=tokens`) has: its rates are per token.
-TOKEN_SCORES = ("state_rate", "map_score", "low_map_score")
+TOKEN_SCORES = ("state_rate", "map_score", "low_map_score", "abs_map_score")
 # Scores that read the rate map's per-cell training statistics (calibration).
-MAP_SCORES = ("map_score", "low_map_score")
+MAP_SCORES = ("map_score", "low_map_score", "abs_map_score")
 RND_INPUTS = ("fused", "pooled")
 
 
@@ -59,11 +59,16 @@ class Observation:
     embedding: Tensor | None = None  # (B, D) what "embedding_rnd" reads, when asked to keep it
 
 
-def map_score(cell_rates: Tensor, cell_mean: Tensor, cell_std: Tensor, top_k: int = 1) -> Tensor:
+def map_score(
+    cell_rates: Tensor, cell_mean: Tensor, cell_std: Tensor, top_k: int = 1, two_sided: bool = False
+) -> Tensor:
     """The token network's map score (B,): each image cell's rate as a z-score against that cell's training
-    statistics, reduced by the mean of the `top_k` largest (1: the maximum). A cell that shows what it never
-    showed in training stands out even when the image's mean rate does not move."""
+    statistics, reduced by the mean of the `top_k` largest (1: the maximum); with `two_sided`, of the largest
+    |z|. A cell that shows what it never showed in training stands out even when the image's mean rate does
+    not move."""
     z = (cell_rates - cell_mean.to(cell_rates)) / cell_std.to(cell_rates).clamp_min(1e-6)
+    if two_sided:
+        z = z.abs()
     return z.topk(min(top_k, z.shape[1]), dim=1).values.mean(dim=1)
 
 
@@ -80,6 +85,9 @@ def token_scores(
     low_map_score   `map_score` of the cells' negated z-scores: the cell whose rate fell furthest below
                     what it showed in training. A board in front of the camera hides what its cells
                     usually carry and lowers their rates (benchmarks/rate_map_pointing.py)
+    abs_map_score   `map_score` of |z|: the cell that moved furthest from its training statistics, either way.
+                    Which way a board moves the cells depends on the trunk and even on the training seed
+                    (benchmarks/two_sided_map.py); this score does not need to know
     """
     scores = {"rate": token_rates.mean(dim=1)}
     cells = token_rates[:, n_1d_tokens:]
@@ -89,6 +97,7 @@ def token_scores(
         if cell_mean is not None and torch.isfinite(cell_mean).all() and torch.isfinite(cell_std).all():
             scores["map_score"] = map_score(cells, cell_mean, cell_std, top_k)
             scores["low_map_score"] = map_score(-cells, -cell_mean, cell_std, top_k)
+            scores["abs_map_score"] = map_score(cells, cell_mean, cell_std, top_k, two_sided=True)
     if n_1d_tokens:
         scores["state_rate"] = token_rates[:, :n_1d_tokens].mean(dim=1)
     return scores
