@@ -2,7 +2,9 @@
 
 from __future__ import annotations
 
+import dataclasses
 import json
+import shutil
 from pathlib import Path
 
 import numpy as np
@@ -205,6 +207,20 @@ def test_two_training_seeds_choose_each_run_time_on_validation_and_report_the_sp
         "VIOLATION: VIB (arm preset)'s run time at training seed 2000 was chosen on 1 test episodes"
         in (out / "report.md").read_text()
     )
+
+    # seeds run in folders apart, merged by copying their cells: the report chooses the run times again on the
+    # validation cells, as the runs did, rather than leaving out every row's uncertainty without a word
+    choices["vib_chosen"]["2000"]["validation_seeds"] = cfg.validation_seeds()
+    (out / "choices.json").write_text(json.dumps(choices))
+    run_benchmark(cfg, report_only=True)
+    merged = tmp_path / "merged"
+    for part in ("cells", "validation", "scores"):
+        shutil.copytree(out / part, merged / part)
+    merged_cfg = dataclasses.replace(cfg, output_dir=merged)
+    run_benchmark(merged_cfg, report_only=True)
+    assert json.loads((merged / "choices.json").read_text()) == choices
+    assert json.loads((merged / "config.json").read_text())["train_seeds"] == [1000, 2000]
+    assert set(json.loads((merged / "results.json").read_text())["uncertainty"]["vib_chosen"]) == {"1000", "2000"}
 
 
 def test_a_run_that_would_choose_on_test_seeds_is_refused_before_any_work(arm_data, tmp_path):
@@ -481,12 +497,13 @@ def test_the_token_comparison_trains_the_token_network_beside_the_same_act_rows_
     assert cfg.variants == [
         "act_chosen", "act_like_vib", "act_like_vib_nofloor", "vib_tokens_beta0", "vib_tokens", "vib_tokens_narrow",
         "vib_tokens_narrow_beta0", "vib_tokens_narrow_act_trunk", "vib_tokens_narrow_act_trunk_l3",
-        "vib_tokens_narrow_act_trunk_l2", "vib_tokens_narrow_l3", "vib_chosen",
+        "vib_tokens_narrow_act_trunk_l2", "vib_tokens_narrow_l3", "vib_tokens_narrow_act_trunk_l2_colour",
+        "vib_chosen",
     ]  # fmt: skip
     networks = {
         "act", "act_like_vib", "act_like_vib_nofloor", "vib_tokens_beta0", "vib_tokens", "vib_tokens_narrow",
         "vib_tokens_narrow_beta0", "vib_tokens_narrow_act_trunk", "vib_tokens_narrow_act_trunk_l3",
-        "vib_tokens_narrow_act_trunk_l2", "vib_tokens_narrow_l3", "vib",
+        "vib_tokens_narrow_act_trunk_l2", "vib_tokens_narrow_l3", "vib_tokens_narrow_act_trunk_l2_colour", "vib",
     }  # fmt: skip
     assert set(cfg.networks()) == networks
     # the control: ACT + VIB's trunk and weight average with the normalization floor off, and only that
@@ -518,6 +535,12 @@ def test_the_token_comparison_trains_the_token_network_beside_the_same_act_rows_
     # and at VIB's depth: again the layer flag alone
     trunk2 = benchmark.train_command("vib_tokens_narrow_act_trunk_l2", cfg, tmp_path / "t", seed=1000)
     assert [a.replace("layer2", "layer4") for a in trunk2] == trunk
+    # the layer2 row on colour-randomized frames: the same flags plus LeRobot's image transforms, hue over the circle
+    colour = benchmark.train_command("vib_tokens_narrow_act_trunk_l2_colour", cfg, tmp_path / "t", seed=1000)
+    assert [a for a in colour if not a.startswith("--dataset.image_transforms.")] == trunk2
+    assert "--dataset.image_transforms.enable=true" in colour
+    (tfs,) = [a for a in colour if a.startswith("--dataset.image_transforms.tfs=")]
+    assert json.loads(tfs.split("=", 1)[1])["hue"]["kwargs"]["hue"] == [-0.5, 0.5]
     # VIB's own trunk one stage deeper: the narrow start plus the layer flag, its normalization left as the preset's
     deeper = benchmark.train_command("vib_tokens_narrow_l3", cfg, tmp_path / "t", seed=1000)
     assert [a for a in deeper if a != "--policy.backbone_layer=layer3"] == narrow

@@ -47,6 +47,9 @@ memory instead (`--policy.encoder=tokens`, token_network.py), beside the same AC
                       row below, which of the two differences between the trunks carries success and which the stop
     vib_tokens_narrow_l3  VIB's trunk (group norm) cut after layer3 instead of layer2: VIB's normalization at a
                       depth that kept ACT's success
+    vib_tokens_narrow_act_trunk_l2_colour  the layer2 row trained on frames whose hue, saturation and brightness
+                      are randomized (`COLOUR_AUGMENTATION`): whether the rows it trails ACT on, an unseen block
+                      of another colour and colour jitter, are a matter of colour
 
 and one control: `act_like_vib_nofloor`, ACT + VIB's trunk and weight average with the normalization floor
 off, which says whether ACT loses anything to the floor that VIB's pooled network lost (the contact cue).
@@ -79,6 +82,17 @@ ACT_TRUNK = {"backbone_norm": "frozen_bn", "backbone_layer": "layer4"}
 ACT_TRUNK_L3 = {**ACT_TRUNK, "backbone_layer": "layer3"}  # the same ResNet, one stage shorter: a 6x8 map at 96x128
 ACT_TRUNK_L2 = {**ACT_TRUNK, "backbone_layer": "layer2"}  # and at VIB's depth: a 12x16 map, 192 cells
 VIB_TRUNK_L3 = {"backbone_layer": "layer3"}  # VIB's trunk (group norm from the preset) one stage deeper
+# LeRobot's `dataset.image_transforms` that randomize colour on every training frame: the hue over the whole
+# circle, so the one red block is seen in every colour; saturation and brightness around the recording's.
+COLOUR_AUGMENTATION = {
+    "enable": True,
+    "max_num_transforms": 3,
+    "tfs": {
+        "hue": {"weight": 1.0, "type": "ColorJitter", "kwargs": {"hue": [-0.5, 0.5]}},
+        "saturation": {"weight": 1.0, "type": "ColorJitter", "kwargs": {"saturation": [0.5, 1.5]}},
+        "brightness": {"weight": 1.0, "type": "ColorJitter", "kwargs": {"brightness": [0.7, 1.3]}},
+    },
+}
 
 # The trained networks a row's chunks or u come from, with the policy class family that loads them.
 NETWORKS: dict[str, str] = {
@@ -94,6 +108,7 @@ NETWORKS: dict[str, str] = {
     "vib_tokens_narrow_act_trunk_l3": "vib",  # and on that trunk cut after layer3
     "vib_tokens_narrow_act_trunk_l2": "vib",  # and after layer2, VIB's depth
     "vib_tokens_narrow_l3": "vib",  # the narrow start on VIB's trunk cut after layer3
+    "vib_tokens_narrow_act_trunk_l2_colour": "vib",  # the layer2 row trained on colour-randomized frames
     "act_like_vib_nofloor": "act",  # act_like_vib with the normalization floor off (a control)
 }
 CHOSEN = "chosen"  # a row whose run time is chosen on validation episodes among the benchmark's `runtimes`
@@ -162,13 +177,19 @@ VARIANTS: dict[str, Variant] = {
     "vib_tokens_narrow_l3": Variant(
         "VIB tokens, narrow start, VIB's trunk to layer3", "vib_tokens_narrow_l3", CHOSEN, "vib_tokens_narrow_l3"
     ),
+    "vib_tokens_narrow_act_trunk_l2_colour": Variant(
+        "VIB tokens, ACT's trunk to layer2, colour augmentation",
+        "vib_tokens_narrow_act_trunk_l2_colour",
+        CHOSEN,
+        "vib_tokens_narrow_act_trunk_l2_colour",
+    ),
 }
 TABLE_I = ("act", "act_te", "vib", "vib_queue", "act_u", "act_rnd", "vib_wo_u", "vib_rnd")
 COMPARISON = ("act_chosen", "act_like_vib", "vib_beta0", "vib_chosen")
 TOKEN_COMPARISON = (
     "act_chosen", "act_like_vib", "act_like_vib_nofloor", "vib_tokens_beta0", "vib_tokens", "vib_tokens_narrow",
     "vib_tokens_narrow_beta0", "vib_tokens_narrow_act_trunk", "vib_tokens_narrow_act_trunk_l3",
-    "vib_tokens_narrow_act_trunk_l2", "vib_tokens_narrow_l3", "vib_chosen",
+    "vib_tokens_narrow_act_trunk_l2", "vib_tokens_narrow_l3", "vib_tokens_narrow_act_trunk_l2_colour", "vib_chosen",
 )  # fmt: skip
 _RUNTIME_MODES = {"queue": "none", "act": "act", "eq6": "uncertainty"}
 

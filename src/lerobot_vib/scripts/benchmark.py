@@ -77,6 +77,7 @@ from ..variants import (
     ACT_TRUNK_L2,
     ACT_TRUNK_L3,
     CHOSEN,
+    COLOUR_AUGMENTATION,
     COMPARISON,
     NARROW_LOGVAR_INIT,
     NETWORKS,
@@ -372,6 +373,11 @@ def train_command(network: str, cfg: BenchmarkConfig, out: Path, seed: int) -> l
             "vib_tokens_narrow_act_trunk_l3": [*narrow, *(f"--policy.{k}={v}" for k, v in ACT_TRUNK_L3.items())],
             "vib_tokens_narrow_act_trunk_l2": [*narrow, *(f"--policy.{k}={v}" for k, v in ACT_TRUNK_L2.items())],
             "vib_tokens_narrow_l3": [*narrow, *(f"--policy.{k}={v}" for k, v in VIB_TRUNK_L3.items())],
+            "vib_tokens_narrow_act_trunk_l2_colour": [
+                *narrow,
+                *(f"--policy.{k}={v}" for k, v in ACT_TRUNK_L2.items()),
+                *transform_flags(COLOUR_AUGMENTATION),
+            ],
         }[network]
         return [_bin("lerobot-train"), f"--config_path={cfg.preset}", "--policy.encoder=tokens", *extra, *common]
     if network not in ("act", "act_like_vib", "act_like_vib_nofloor"):
@@ -412,12 +418,7 @@ def act_recipe_flags(preset: dict) -> list[str]:
     ensembles = policy.get("temporal_ensemble", "none") != "none"
     policy["n_action_steps"] = queue_steps(policy["chunk_size"], policy.get("n_action_steps", 1), ensembles)
     flags = [f"--policy.{ACT_FROM_VIB[k]}={v}" for k, v in policy.items() if k in ACT_FROM_VIB]
-    transforms = preset.get("dataset", {}).get("image_transforms")
-    if transforms:
-        flags += [
-            f"--dataset.image_transforms.{k}={json.dumps(v) if isinstance(v, dict) else str(v).lower()}"
-            for k, v in transforms.items()
-        ]
+    flags += transform_flags(preset.get("dataset", {}).get("image_transforms") or {})
     if policy.get("scheduler_warmup_steps") is not None:
         flags += [
             "--use_policy_training_preset=false",
@@ -428,6 +429,14 @@ def act_recipe_flags(preset: dict) -> list[str]:
             f"--scheduler.num_warmup_steps={policy['scheduler_warmup_steps']}",
         ]
     return flags
+
+
+def transform_flags(transforms: dict) -> list[str]:
+    """`lerobot-train` flags that set LeRobot's `dataset.image_transforms` fields to `transforms`."""
+    return [
+        f"--dataset.image_transforms.{k}={json.dumps(v) if isinstance(v, dict) else str(v).lower()}"
+        for k, v in transforms.items()
+    ]
 
 
 def given_checkpoint(network: str, cfg: BenchmarkConfig) -> Path | None:
@@ -683,6 +692,17 @@ def choose_runtime(cfg: BenchmarkConfig, variant: str, seed: int) -> dict:
     return {"runtime": best, "chosen_on": successes}
 
 
+def record_choice(cfg: BenchmarkConfig, variant: str, seed: int) -> dict:
+    """Choose a row's run time at one seed (`choose_runtime`) and keep it in `choices.json`."""
+    choice = {**choose_runtime(cfg, variant, seed), "validation_seeds": cfg.validation_seeds()}
+    with _locked(cfg.output_dir):
+        choices_file = cfg.output_dir / "choices.json"
+        choices = json.loads(choices_file.read_text()) if choices_file.exists() else {}
+        choices.setdefault(variant, {})[str(seed)] = choice
+        _write_json(choices_file, choices)
+    return choice
+
+
 def load_network(network: str, path: Path, device: str):
     """A trained network in eval mode; a VIB one records the paper's rate as u (Table I's score)."""
     from lerobot.policies.factory import get_policy_class
@@ -706,6 +726,8 @@ def run_benchmark(cfg: BenchmarkConfig, report_only: bool = False) -> dict | Non
             _run_cells(cfg, clock)
         if cfg.train_only:
             return None
+    else:
+        _complete_records(cfg)
     cells = {}
     for cell in planned_cells(cfg):
         path = cell_path(cfg, *cell)
@@ -879,19 +901,11 @@ def _run_seed(cfg: BenchmarkConfig, seed: int, todo: list[Cell], clock: "WallClo
         )
         for n, policy in nets.items()
     }
-    choices_file = cfg.output_dir / "choices.json"
     for variant, condition, _, runtime in tqdm(todo, desc=f"cells, seed {seed}", unit="cell"):
         if cell_path(cfg, variant, condition, seed, runtime).exists():
             continue  # saved meanwhile by another invocation on other rows of the same output dir
-        if condition != VALIDATION:
-            choice = choose_runtime(cfg, variant, seed)
-            with _locked(cfg.output_dir):
-                choices = json.loads(choices_file.read_text()) if choices_file.exists() else {}
-                choices.setdefault(variant, {})[str(seed)] = {**choice, "validation_seeds": cfg.validation_seeds()}
-                _write_json(choices_file, choices)
-            runtime_used = choice["runtime"]
-        else:
-            runtime_used = runtime
+        # a test cell runs at the run time its row chose on validation; a validation cell at its own
+        runtime_used = record_choice(cfg, variant, seed)["runtime"] if condition != VALIDATION else runtime
         policy = build_variant(variant, nets, rnd, runtime_used)
         if cfg.calibrate and isinstance(policy, VIBPolicy):
             policy.trace_all_scores = True  # every score per step, for failure prediction (failure.py)
@@ -1083,6 +1097,24 @@ def _locked(folder: Path, name: str = ".lock") -> Iterator[None]:
             yield
         finally:
             fcntl.flock(f, fcntl.LOCK_UN)
+
+
+def _complete_records(cfg: BenchmarkConfig) -> None:
+    """What a report needs beside the cells, for a folder assembled from other runs' cells (seeds run apart,
+    merged): the settings, as this command's; and each chosen row's run time, chosen again on its validation
+    cells (the same rule, so the same choice), where `choices.json` lacks it. Without them the report would
+    leave out every row's uncertainty without a word."""
+    if not (cfg.output_dir / "config.json").exists():
+        _save_config_record(cfg)
+    choices_file = cfg.output_dir / "choices.json"
+    choices = json.loads(choices_file.read_text()) if choices_file.exists() else {}
+    for variant in cfg.variants:
+        for seed in cfg.train_seeds:
+            validated = cfg.validated(variant)
+            if str(seed) in choices.get(variant, {}) or VARIANTS[variant].ensemble != CHOSEN or not validated:
+                continue
+            if all(cell_path(cfg, variant, VALIDATION, seed, rt).exists() for rt in validated):
+                record_choice(cfg, variant, seed)
 
 
 def _save_config_record(cfg: BenchmarkConfig) -> None:
