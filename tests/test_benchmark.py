@@ -498,12 +498,13 @@ def test_the_token_comparison_trains_the_token_network_beside_the_same_act_rows_
         "act_chosen", "act_like_vib", "act_like_vib_nofloor", "vib_tokens_beta0", "vib_tokens", "vib_tokens_narrow",
         "vib_tokens_narrow_beta0", "vib_tokens_narrow_act_trunk", "vib_tokens_narrow_act_trunk_l3",
         "vib_tokens_narrow_act_trunk_l2", "vib_tokens_narrow_l3", "vib_tokens_narrow_act_trunk_l2_colour",
-        "vib_chosen",
+        "act_colour", "vib_chosen",
     ]  # fmt: skip
     networks = {
         "act", "act_like_vib", "act_like_vib_nofloor", "vib_tokens_beta0", "vib_tokens", "vib_tokens_narrow",
         "vib_tokens_narrow_beta0", "vib_tokens_narrow_act_trunk", "vib_tokens_narrow_act_trunk_l3",
-        "vib_tokens_narrow_act_trunk_l2", "vib_tokens_narrow_l3", "vib_tokens_narrow_act_trunk_l2_colour", "vib",
+        "vib_tokens_narrow_act_trunk_l2", "vib_tokens_narrow_l3", "vib_tokens_narrow_act_trunk_l2_colour",
+        "act_colour", "vib",
     }  # fmt: skip
     assert set(cfg.networks()) == networks
     # the control: ACT + VIB's trunk and weight average with the normalization floor off, and only that
@@ -541,6 +542,12 @@ def test_the_token_comparison_trains_the_token_network_beside_the_same_act_rows_
     assert "--dataset.image_transforms.enable=true" in colour
     (tfs,) = [a for a in colour if a.startswith("--dataset.image_transforms.tfs=")]
     assert json.loads(tfs.split("=", 1)[1])["hue"]["kwargs"]["hue"] == [-0.5, 0.5]
+    # its control: LeRobot's ACT as the comparison trains it, plus the very same transform flags, nothing else
+    act = benchmark.train_command("act", cfg, tmp_path / "a", seed=1000)
+    act_colour = benchmark.train_command("act_colour", cfg, tmp_path / "a", seed=1000)
+    transforms = [a for a in colour if a.startswith("--dataset.image_transforms.")]
+    assert [a for a in act_colour if a not in transforms] == act and all(t in act_colour for t in transforms)
+    assert "--policy.type=act" in act_colour
     # VIB's own trunk one stage deeper: the narrow start plus the layer flag, its normalization left as the preset's
     deeper = benchmark.train_command("vib_tokens_narrow_l3", cfg, tmp_path / "t", seed=1000)
     assert [a for a in deeper if a != "--policy.backbone_layer=layer3"] == narrow

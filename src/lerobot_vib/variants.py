@@ -50,6 +50,8 @@ memory instead (`--policy.encoder=tokens`, token_network.py), beside the same AC
     vib_tokens_narrow_act_trunk_l2_colour  the layer2 row trained on frames whose hue, saturation and brightness
                       are randomized (`COLOUR_AUGMENTATION`): whether the rows it trails ACT on, an unseen block
                       of another colour and colour jitter, are a matter of colour
+    act_colour        act_colour        LeRobot's ACT trained on the same colour-randomized frames: the control
+                      that says whether the colour row's gain is the bottleneck's or the augmentation's
 
 and one control: `act_like_vib_nofloor`, ACT + VIB's trunk and weight average with the normalization floor
 off, which says whether ACT loses anything to the floor that VIB's pooled network lost (the contact cue).
@@ -110,6 +112,7 @@ NETWORKS: dict[str, str] = {
     "vib_tokens_narrow_l3": "vib",  # the narrow start on VIB's trunk cut after layer3
     "vib_tokens_narrow_act_trunk_l2_colour": "vib",  # the layer2 row trained on colour-randomized frames
     "act_like_vib_nofloor": "act",  # act_like_vib with the normalization floor off (a control)
+    "act_colour": "act",  # ACT on the colour row's randomized frames (its control)
 }
 CHOSEN = "chosen"  # a row whose run time is chosen on validation episodes among the benchmark's `runtimes`
 
@@ -183,13 +186,15 @@ VARIANTS: dict[str, Variant] = {
         CHOSEN,
         "vib_tokens_narrow_act_trunk_l2_colour",
     ),
+    "act_colour": Variant("ACT (LeRobot's), colour augmentation", "act_colour", CHOSEN, None),
 }
 TABLE_I = ("act", "act_te", "vib", "vib_queue", "act_u", "act_rnd", "vib_wo_u", "vib_rnd")
 COMPARISON = ("act_chosen", "act_like_vib", "vib_beta0", "vib_chosen")
 TOKEN_COMPARISON = (
     "act_chosen", "act_like_vib", "act_like_vib_nofloor", "vib_tokens_beta0", "vib_tokens", "vib_tokens_narrow",
     "vib_tokens_narrow_beta0", "vib_tokens_narrow_act_trunk", "vib_tokens_narrow_act_trunk_l3",
-    "vib_tokens_narrow_act_trunk_l2", "vib_tokens_narrow_l3", "vib_tokens_narrow_act_trunk_l2_colour", "vib_chosen",
+    "vib_tokens_narrow_act_trunk_l2", "vib_tokens_narrow_l3", "vib_tokens_narrow_act_trunk_l2_colour", "act_colour",
+    "vib_chosen",
 )  # fmt: skip
 _RUNTIME_MODES = {"queue": "none", "act": "act", "eq6": "uncertainty"}
 

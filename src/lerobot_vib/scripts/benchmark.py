@@ -380,25 +380,27 @@ def train_command(network: str, cfg: BenchmarkConfig, out: Path, seed: int) -> l
             ],
         }[network]
         return [_bin("lerobot-train"), f"--config_path={cfg.preset}", "--policy.encoder=tokens", *extra, *common]
-    if network not in ("act", "act_like_vib", "act_like_vib_nofloor"):
+    if network not in ("act", "act_colour", "act_like_vib", "act_like_vib_nofloor"):
         raise ValueError(f"Unknown network {network!r}; choose from {list(NETWORKS)}.")
     preset = json.loads(cfg.preset.read_text())
     run = [f"--{k}={preset[k]}" for k in ("batch_size", "num_workers", "log_freq") if k in preset]
-    like_vib = []
-    if network != "act":
+    extra = []  # what the row changes in ACT as it is
+    if network == "act_colour":  # the colour row's control: ACT on its randomized frames
+        extra = transform_flags(COLOUR_AUGMENTATION)
+    elif network != "act":
         policy = dict(preset["policy"])
         if network == "act_like_vib_nofloor":
             policy["normalization_floor"] = None
-        like_vib = [
+        extra = [
             f"--policy.{k}={'null' if policy.get(k) is None else policy[k]}" for k in LIKE_VIB_FIELDS if k in policy
         ]
     return [
         _bin("lerobot-train"),
-        f"--policy.type={'act' if network == 'act' else 'act_like_vib'}",
+        f"--policy.type={'act' if network in ('act', 'act_colour') else 'act_like_vib'}",
         "--policy.push_to_hub=false",
         "--policy.pretrained_backbone_weights=null",
         *act_recipe_flags(preset),
-        *like_vib,
+        *extra,
         *run,
         "--wandb.enable=false",
         *common,
