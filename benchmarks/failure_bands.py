@@ -43,10 +43,16 @@ from lerobot_vib.scripts.benchmark_report import runtime_of
 from lerobot_vib.scripts.failure_report import failure_prediction
 from lerobot_vib.sim.perturbations import CONDITIONS
 
+# label: failure_prediction's candidate set; ORs of two at their conformal thresholds, as when this ran first
 OFFERED = {
-    "constant or proportional band (before)": tuple(t for t in THRESHOLDS if t != "std_band"),
-    "and FAIL-Detect's band": THRESHOLDS,
+    "constant or proportional band (before)": {
+        "thresholds": tuple(t for t in THRESHOLDS if t != "std_band"),
+        "or_sizes": (2,),
+        "or_margins": (1.0,),
+    },
+    "and FAIL-Detect's band": {"thresholds": THRESHOLDS, "or_sizes": (2,), "or_margins": (1.0,)},
 }
+TITLE = "What FAIL-Detect's band changes in the shipped failure monitor"
 
 
 def load_cells(folder: Path, variant: str) -> tuple[dict, list[int]]:
@@ -71,9 +77,9 @@ def _read(path: Path) -> dict:
     return cell
 
 
-def compare(folders: list[Path], variant: str, alpha: float) -> list[dict]:
-    """Both candidate sets on the union of `folders`' cells of `variant` (one folder per training seed, or one
-    holding them all) with their merged run-time choices."""
+def compare(folders: list[Path], variant: str, alpha: float, offered: dict = OFFERED) -> list[dict]:
+    """Each of the `offered` candidate sets on the union of `folders`' cells of `variant` (one folder per
+    training seed, or one holding them all) with their merged run-time choices."""
     cells, choices = {}, {}
     for folder in folders:
         cells.update(load_cells(folder, variant)[0])
@@ -85,8 +91,8 @@ def compare(folders: list[Path], variant: str, alpha: float) -> list[dict]:
         variants=[variant], train_seeds=seeds, conditions=conditions, alpha=alpha, rnd_steps=0, failure_alphas=[alpha]
     )
     rows = []
-    for label, offered in OFFERED.items():
-        result = failure_prediction(cfg, cells, lambda v, s: runtime_of(choices, v, s), thresholds=offered)
+    for label, candidates in offered.items():
+        result = failure_prediction(cfg, cells, lambda v, s: runtime_of(choices, v, s), **candidates)
         result = result.get(variant) or {}
         if "shipped" not in result:
             rows.append({"offered": label, "error": result.get("error", "no monitor")})
@@ -114,11 +120,13 @@ def _f(x, fmt: str = ".2f") -> str:
     return "-" if x is None else format(x, fmt)
 
 
-def markdown(results: dict, alpha: float, command: str, machine: str, seconds: float) -> str:
+def markdown(
+    results: dict, alpha: float, command: str, machine: str, seconds: float, title: str = TITLE, script: str = __file__
+) -> str:
     lines = [
-        "# What FAIL-Detect's band changes in the shipped failure monitor",
+        f"# {title}",
         "",
-        f"`benchmarks/failure_bands.py` on committed benchmark results, alpha = {alpha}: the report's failure "
+        f"`benchmarks/{Path(script).name}` on committed benchmark results, alpha = {alpha}: the report's failure "
         "prediction run on the same rollouts with two candidate sets, the monitor shipped by the report's rule "
         "(chosen on validation rollouts), its metrics on the test seeds. Failed episodes are the positives, "
         "successful ones (perturbed included) the negatives; detection time is the first alarm's step over the "
@@ -165,7 +173,7 @@ def markdown(results: dict, alpha: float, command: str, machine: str, seconds: f
         last = rows[-1]
         if last.get("per_condition"):
             lines += [
-                f"Per condition, the monitor shipped with both bands offered ({last['shipped']}):",
+                f"Per condition, the monitor shipped with the last candidate set ({last['shipped']}):",
                 "",
                 "| condition | failed / succeeded | TPR | TNR | detection time | median lead (n) |",
                 "| --- | --- | --- | --- | --- | --- |",
@@ -190,8 +198,9 @@ def cpu_name() -> str:
     return platform.processor() or "unknown CPU"
 
 
-def main() -> None:
-    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+def main(offered: dict = OFFERED, title: str = TITLE, script: str = __file__, doc: str = __doc__) -> None:
+    """The command line of this script, and of another that compares its own candidate sets (`offered`)."""
+    parser = argparse.ArgumentParser(description=doc.split("\n\n")[0])
     parser.add_argument("rows", nargs="+", help="<benchmark output folder>[,<folder>...]:<variant>")
     parser.add_argument("--alpha", type=float, default=0.1)
     parser.add_argument("--output", type=Path, required=True, help="the report (markdown; results.json beside it)")
@@ -202,13 +211,13 @@ def main() -> None:
         folder, sep, variant = spec.rpartition(":")
         if not sep or not folder:
             raise SystemExit(f"A row is <folder>[,<folder>...]:<variant>, got {spec!r}.")
-        results[(folder, variant)] = compare([Path(f) for f in folder.split(",")], variant, args.alpha)
+        results[(folder, variant)] = compare([Path(f) for f in folder.split(",")], variant, args.alpha, offered)
         shipped = [f"{r['offered']}: {r.get('shipped', r.get('error'))}" for r in results[(folder, variant)]]
         print(f"{variant}: " + "; ".join(shipped))
     args.output.parent.mkdir(parents=True, exist_ok=True)
     machine = f"{cpu_name()}, {os.cpu_count()} CPUs"
-    command = "python benchmarks/failure_bands.py " + " ".join(args.rows) + f" --output {args.output}"
-    args.output.write_text(markdown(results, args.alpha, command, machine, time.time() - start))
+    command = f"python benchmarks/{Path(script).name} " + " ".join(args.rows) + f" --output {args.output}"
+    args.output.write_text(markdown(results, args.alpha, command, machine, time.time() - start, title, script))
     (args.output.parent / "results.json").write_text(
         json.dumps({f"{f}:{v}": rows for (f, v), rows in results.items()}, indent=1, default=str)
     )

@@ -360,6 +360,13 @@ def test_an_or_of_scores_sets_every_threshold_gammas_included_at_alpha_over_k():
                             or_traces={"embedding_rnd": partner}, and_traces={"embedding_rnd": partner})  # fmt: skip
     with pytest.raises(VIBConfigError, match="both set"):
         CalibrationConfig(and_gammas={"embedding_rnd": 2.0}, or_gammas={"state_rate": 2.0})
+    wide = gamma_from_rollouts(dataset, info, 0.1, "r.json", threshold="max", traces=traces,
+                               or_traces={"embedding_rnd": partner}, or_window=5, or_margin=3.0)  # fmt: skip
+    # the partner's threshold at three times its conformal one, the stop's own gamma untouched
+    assert wide.or_gammas == {"embedding_rnd": pytest.approx(3.0 * expected)} and wide.or_margin == 3.0
+    assert wide.gamma == either.gamma and wide.episodes_above_gamma <= either.episodes_above_gamma
+    with pytest.raises(VIBConfigError, match="or_margin` must be >= 1"):
+        CalibrationConfig(or_gammas={"state_rate": 2.0}, or_margin=0.5)
 
 
 def test_a_threshold_set_on_the_successful_rollouts_ignores_the_failures_and_their_traces():
@@ -613,3 +620,25 @@ def test_a_calibrated_checkpoint_reaches_the_hub_through_its_http_api(
     assert sent.keys() == kept.keys() and all(torch.equal(sent[k], kept[k]) for k in kept)
     card = files["README.md"].decode()
     assert "gamma" in card and "not on PyPI" in card and "Measured: 6/10 clean rollouts" not in card
+
+
+def test_an_or_margin_below_one_or_without_or_scores_is_refused_by_name(tmp_path):
+    from lerobot_vib.scripts.calibrate import CalibrateConfig
+
+    rollouts = tmp_path / "uncertainty_info.json"
+    rollouts.write_text("{}")
+    with pytest.raises(VIBConfigError, match="`--or_margin` must be >= 1"):
+        CalibrateConfig(rollouts=rollouts, conformal_alpha=0.1, or_scores=["state_rate"], or_margin=0.9)
+    with pytest.raises(VIBConfigError, match="give `--or_scores` too"):
+        CalibrateConfig(rollouts=rollouts, conformal_alpha=0.1, or_margin=2.0)
+    assert CalibrateConfig(rollouts=rollouts, conformal_alpha=0.1, or_scores=["state_rate"], or_margin=2.0)
+
+
+def test_the_report_s_command_for_an_or_with_a_margin_sets_that_margin():
+    from lerobot_vib.failure import AnyOf, Monitor
+    from lerobot_vib.scripts.failure_report import ship_command
+
+    monitor = AnyOf((Monitor(("image_rate",), 5), Monitor(("state_rate",), 5), Monitor(("embedding_rnd",), 5)), 2.0)
+    command = ship_command(monitor, 0.1)
+    assert "--or_scores='[state_rate,embedding_rnd]' --or_window=5 --or_margin=2" in command
+    assert "--or_margin" not in ship_command(AnyOf(monitor.members[:2]), 0.1)

@@ -148,6 +148,37 @@ def test_or_candidates_put_a_band_only_on_the_first_score_and_list_an_or_of_two_
         AnyOf((Monitor(("a",)), Monitor(("a",), 5)))
 
 
+def test_an_or_margin_multiplies_only_the_partners_thresholds_and_never_alarms_a_clean_episode_more_often():
+    calib = successes(20)
+    plain = calibrate_monitor(AnyOf((Monitor(("a",)), Monitor(("b",)))), calib, 0.1)
+    wide = calibrate_monitor(AnyOf((Monitor(("a",)), Monitor(("b",))), margin=4.0), calib, 0.1)
+    assert wide.members[0].thresholds == plain.members[0].thresholds
+    assert wide.members[1].thresholds["b"] == pytest.approx(4.0 * plain.members[1].thresholds["b"])
+    rng = np.random.default_rng(5)
+    clean = [Episode(True, {"a": 1 + rng.gamma(2.0, 0.2, 40), "b": 1 + rng.gamma(2.0, 0.2, 40)}) for _ in range(200)]
+    assert sum(wide.alarm(e) is not None for e in clean) <= sum(plain.alarm(e) is not None for e in clean)
+    # a partner far outside the clean rollouts still fires at once; one just outside them no longer does
+    black = Episode(False, {"a": np.ones(40), "b": np.full(40, 50.0)})
+    noisy = Episode(True, {"a": np.ones(40), "b": np.full(40, 1.5 * plain.members[1].thresholds["b"])})
+    assert wide.alarm(black) == plain.alarm(black) == 0
+    assert plain.alarm(noisy) == 0 and wide.alarm(noisy) is None
+    either = AnyOf((Monitor(("a",)), Monitor(("b",))), margin=2.0)
+    assert monitor_from_dict(either.as_dict()) == either and "2 x" in either.name
+    with pytest.raises(ValueError, match="margin must be >= 1"):
+        AnyOf((Monitor(("a",)), Monitor(("b",))), margin=0.5)
+
+
+def test_or_candidates_of_three_share_one_partner_window_and_list_each_margin():
+    ors = or_candidates(["a", "b", "c"], windows=(1, 5), thresholds=("constant",), sizes=(3,), margins=(1.0, 2.0))
+    assert all(len(m.members) == 3 and m.members[1].window == m.members[2].window for m in ors)
+    plain = {frozenset(m.members) for m in ors if m.margin == 1}
+    # margin 1, constants: the members are interchangeable, so each set of windows is listed once: all three at
+    # one window (2), or one member alone at the other window (3 members x 2 windows)
+    assert len(plain) == sum(m.margin == 1 for m in ors) == 8
+    assert sum(m.margin == 2 for m in ors) == 12  # with a margin the first member differs: 3 firsts x 2 x 2
+    assert or_candidates(["a", "b"], windows=(1, 5)) == or_candidates(["a", "b"], windows=(1, 5), sizes=(2,))
+
+
 def test_the_shipped_monitor_is_the_earliest_meeting_every_target_on_validation_else_the_best_balanced_one():
     from lerobot_vib.scripts.failure_report import BEST_BALANCED, EARLIEST, ship_rule
 

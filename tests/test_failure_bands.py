@@ -69,3 +69,19 @@ def test_both_candidate_sets_ship_on_the_same_rollouts_and_only_the_second_may_o
     assert both["test"]["tpr"] == 1.0 and both["per_condition"]["black"]["detection_time"] == 0.0
     report = failure_bands.markdown({(str(tmp_path), VARIANT): [before, both]}, 0.1, "cmd", "cpu", 1.0)
     assert "| and FAIL-Detect's band |" in report and "1000: 40" in report
+
+
+def test_ors_of_three_with_a_margin_are_offered_beside_the_ors_of_two_and_never_ship_a_later_alarm(tmp_path):
+    """benchmarks/failure_ors.py: the second candidate set holds the first."""
+    import sys
+
+    sys.path.insert(0, str(Path(__file__).parents[1] / "benchmarks"))
+    spec = importlib.util.spec_from_file_location(
+        "failure_ors", Path(__file__).parents[1] / "benchmarks" / "failure_ors.py"
+    )
+    failure_ors = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(failure_ors)
+    before, after = failure_bands.compare([_folder(tmp_path)], VARIANT, 0.1, failure_ors.OFFERED)
+    assert before["candidates"] < after["candidates"]
+    assert after["validation"]["detection_time"] <= before["validation"]["detection_time"]
+    assert " x [" not in before["shipped"]  # no margin among the ORs offered before

@@ -494,3 +494,6 @@ def test_the_model_card_says_the_stop_also_fires_on_an_or_partner_and_at_what_le
     c.or_gammas, c.or_window, c.rollout_seeds = {"state_rate": 1.7}, 5, list(range(40))
     text = describe_calibration(config, 1.0)
     assert "also fires when `state_rate` (its mean over 5 steps) above 1.7" in text and "alpha / 2" in text
+    assert "times their conformal ones" not in text
+    c.or_margin = 4.0
+    assert "the OR's at 4 times their conformal ones" in describe_calibration(config, 1.0)

@@ -197,6 +197,9 @@ class CalibrationConfig:
             for k members, so that the OR stops a clean rollout with probability at most alpha. Set by
             `lerobot-vib-calibrate --rollouts=... --or_scores=[...] --or_window=w`; not with `and_gammas`.
         or_window: The window of the `or_gammas` scores, in steps (1: their u itself).
+        or_margin: How many times their conformal thresholds the `or_gammas` are (>= 1, which keeps alpha: a
+            partner then fires only far outside the clean rollouts). Set by `lerobot-vib-calibrate --or_margin`;
+            already applied to `or_gammas`, kept to say how they were set.
         monitor_metrics: What the stop, as calibrated here, measured as a failure predictor on rollouts that set
             nothing (failure.py): "tpr", "tnr", "detection_time", "median_lead_time", "n_failed", "n_succeeded",
             "alpha". Empty: not measured. `lerobot-vib-benchmark` writes it into the checkpoints it ships.
@@ -228,6 +231,7 @@ class CalibrationConfig:
     and_gammas: dict[str, float] = field(default_factory=dict)
     or_gammas: dict[str, float] = field(default_factory=dict)
     or_window: int = 1
+    or_margin: float = 1.0
     monitor_metrics: dict[str, float] = field(default_factory=dict)
     monitor_measured_on: str | None = None
 
@@ -249,6 +253,8 @@ class CalibrationConfig:
                 "`calibration.and_gammas` and `calibration.or_gammas` are both set: the stop runs an AND or an OR "
                 "of scores, not both. Calibrate one of them (lerobot-vib-calibrate --and_scores or --or_scores)."
             )
+        if not (math.isfinite(self.or_margin) and self.or_margin >= 1):
+            raise VIBConfigError(f"`calibration.or_margin` must be >= 1, got {self.or_margin}.")
         for name in ("window", "or_window"):
             value = getattr(self, name)
             if not (isinstance(value, int) and value >= 1):

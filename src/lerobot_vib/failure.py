@@ -31,7 +31,10 @@ Calibration, by split-conformal prediction on successful clean rollouts only, at
 so that a successful clean episode exchangeable with the calibration ones alarms with probability at most
 alpha. The members of an AND are each calibrated at alpha; the AND alarms no more often than any of them. The
 k members of an OR are each calibrated at alpha / k: by the union bound the OR alarms with probability at most
-alpha.
+alpha. An OR may hold its partners (every member but the first) at a margin c >= 1 times their conformal
+threshold: a threshold above the conformal one alarms on a clean episode no more often, so the guarantee
+stands, and the partner then fires only on what lies far outside the clean rollouts (a black camera, not a
+noisy one). c is chosen on validation rollouts like the rest of the monitor.
 
 Metrics over a set of episodes: TPR (failures alarmed), TNR (successes not alarmed), accuracy, balanced
 accuracy (TPR + TNR) / 2; detection time, the first alarm's step over the episode's length, in alarmed
@@ -44,7 +47,7 @@ from __future__ import annotations
 import itertools
 import math
 from collections.abc import Sequence
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 
 import numpy as np
 
@@ -100,12 +103,15 @@ class AnyOf:
     calibrated at alpha / k (the module docstring)."""
 
     members: tuple[Monitor, ...]
+    margin: float = 1.0  # the partners' thresholds: this many times their conformal ones (the module docstring)
 
     def __post_init__(self):
         if len(self.members) < 2 or not all(isinstance(m, Monitor) for m in self.members):
             raise ValueError(f"An OR needs at least two monitors, got {self.members}.")
         if len(set(self.scores)) != len(self.scores):
             raise ValueError(f"An OR's members must read distinct scores, got {self.scores}.")
+        if not (math.isfinite(self.margin) and self.margin >= 1):
+            raise ValueError(f"An OR's margin must be >= 1 (a lower one would break alpha), got {self.margin}.")
 
     @property
     def scores(self) -> tuple[str, ...]:
@@ -117,16 +123,19 @@ class AnyOf:
 
     @property
     def name(self) -> str:
-        return " OR ".join(f"({m.name})" for m in self.members)
+        partners = " OR ".join(f"({m.name})" for m in self.members[1:])
+        if self.margin != 1:
+            partners = f"{self.margin:g} x [{partners}]"
+        return f"({self.members[0].name}) OR {partners}"
 
     def as_dict(self) -> dict:
-        return {"any_of": [m.as_dict() for m in self.members]}
+        return {"any_of": [m.as_dict() for m in self.members], **({"margin": self.margin} if self.margin != 1 else {})}
 
 
 def monitor_from_dict(d: dict) -> Monitor | AnyOf:
     """A monitor as `as_dict` wrote it, an OR included."""
     if "any_of" in d:
-        return AnyOf(tuple(Monitor.from_dict(m) for m in d["any_of"]))
+        return AnyOf(tuple(Monitor.from_dict(m) for m in d["any_of"]), float(d.get("margin", 1.0)))
     return Monitor.from_dict(d)
 
 
@@ -179,20 +188,28 @@ def candidate_monitors(
 
 
 def or_candidates(
-    scores: Sequence[str], windows: Sequence[int] = (1, 5, 10), thresholds: Sequence[str] = THRESHOLDS
+    scores: Sequence[str],
+    windows: Sequence[int] = (1, 5, 10),
+    thresholds: Sequence[str] = THRESHOLDS,
+    sizes: Sequence[int] = (2,),
+    margins: Sequence[float] = (1.0,),
 ) -> list[AnyOf]:
-    """Every OR of two scores: the first at every window and threshold, the second at every window with a
-    constant threshold (as the policy's stop runs an OR: a band on its own score only), windows aggregated by
-    their mean. An OR of two constants is listed once."""
+    """Every OR of `sizes` scores as the policy's stop runs one: the first score at every window and threshold,
+    its partners with constant thresholds (a band on the first score only) over one shared window, at every
+    margin; windows aggregated by their mean. ORs that differ only in the order of constant members are listed
+    once."""
     out, seen = [], set()
-    for a, b in itertools.permutations(scores, 2):
-        for wa, wb in itertools.product(windows, windows):
-            for th in thresholds:
-                first, second = Monitor((a,), wa, "mean", th), Monitor((b,), wb, "mean", "constant")
-                key = frozenset((first, second)) if th == "constant" else (first, second)
-                if key not in seen:
-                    seen.add(key)
-                    out.append(AnyOf((first, second)))
+    for size in sizes:
+        for a in scores:
+            for partners in itertools.combinations([s for s in scores if s != a], size - 1):
+                for wa, wb, th, c in itertools.product(windows, windows, thresholds, margins):
+                    first = Monitor((a,), wa, "mean", th)
+                    rest = tuple(Monitor((b,), wb, "mean", "constant") for b in partners)
+                    # with a margin the first member is not interchangeable with its partners
+                    key = (frozenset((first, *rest)), c) if th == "constant" and c == 1 else (first, rest, c)
+                    if key not in seen:
+                        seen.add(key)
+                        out.append(AnyOf((first, *rest), c))
     return out
 
 
@@ -286,7 +303,10 @@ def calibrate_monitor(
     An OR's k members are each calibrated at alpha / k."""
     if isinstance(monitor, AnyOf):
         share = alpha / len(monitor.members)
-        return CalibratedAnyOf(monitor, alpha, [calibrate_monitor(m, episodes, share) for m in monitor.members])
+        members = [calibrate_monitor(m, episodes, share) for m in monitor.members]
+        for i, m in enumerate(members[1:], start=1):
+            members[i] = replace(m, thresholds={k: monitor.margin * v for k, v in m.thresholds.items()})
+        return CalibratedAnyOf(monitor, alpha, members)
     calib = calibration_episodes(episodes, monitor.scores)
     needed = conformal_min_scores(alpha) * (1 if monitor.threshold == "constant" else 2)
     if len(calib) < needed:

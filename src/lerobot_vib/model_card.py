@@ -117,7 +117,9 @@ def describe_calibration(config, rate_mean: float, training_data: str | None = N
             partners = ", ".join(f"`{k}`{over} above {g:.4g}" for k, g in c.or_gammas.items())
             lines.append(
                 f"- The stop also fires when {partners} (an OR of scores; each threshold, gamma's included, set at "
-                f"alpha / {len(c.or_gammas) + 1} so that the OR keeps alpha)."
+                f"alpha / {len(c.or_gammas) + 1} so that the OR keeps alpha"
+                + (f"; the OR's at {c.or_margin:g} times their conformal ones" if c.or_margin != 1 else "")
+                + ")."
             )
         if c.window > 1:
             lines.append(

@@ -841,7 +841,7 @@ def _shipped_policy(
         policy_config=config, recording=recorded[1] if recorded else None, window=primary.window,
         window_aggregate=primary.aggregate, and_traces={name: traces[name] for name in partners},
         episodes="successes", or_traces={m.scores[0]: traces[m.scores[0]] for m in others} or None,
-        or_window=others[0].window if others else 1,
+        or_window=others[0].window if others else 1, or_margin=monitor.margin if others else 1.0,
     )  # fmt: skip
     # What this stop, with these very thresholds, predicts on the test rollouts
     thresholds = {score: np.asarray(calibration.gamma_band) if calibration.gamma_band else calibration.gamma}

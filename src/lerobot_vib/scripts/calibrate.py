@@ -110,6 +110,9 @@ class CalibrateConfig:
         `conformal_alpha` / k for k members so that the OR keeps `conformal_alpha`; `calibration.or_gammas`.
         Not with `and_scores`.
     or_window: The window of the `or_scores`, in steps.
+    or_margin: With `or_scores`: their thresholds at this many times their conformal ones (>= 1, so the OR still
+        keeps `conformal_alpha`): a partner then fires only far outside the clean rollouts (failure.AnyOf);
+        `calibration.or_margin`.
     rnd_steps: Training steps of the "embedding_rnd" score's predictor (batch 256, on the recorded embeddings).
     num_workers: DataLoader workers.
     output_dir: Where to write the calibrated checkpoint (default: `<checkpoint>_calibrated` beside a local
@@ -137,6 +140,7 @@ class CalibrateConfig:
     and_scores: list[str] = field(default_factory=list)
     or_scores: list[str] = field(default_factory=list)
     or_window: int = 1
+    or_margin: float = 1.0
     rollout_episodes: str = "all"
     output_dir: Path | None = None
     in_place: bool = False
@@ -204,6 +208,13 @@ class CalibrateConfig:
             raise VIBConfigError("`--and_scores` and `--or_scores` are both given: the stop runs one of them.")
         if self.or_window < 1:
             raise VIBConfigError(f"`--or_window` must be >= 1, got {self.or_window}.")
+        if not (math.isfinite(self.or_margin) and self.or_margin >= 1):
+            raise VIBConfigError(
+                f"`--or_margin` must be >= 1 (below the conformal thresholds the OR breaks alpha), got "
+                f"{self.or_margin}."
+            )
+        if self.or_margin != 1 and not self.or_scores:
+            raise VIBConfigError("`--or_margin` scales the `--or_scores` thresholds: give `--or_scores` too.")
         if (self.window > 1 or self.and_scores or self.or_scores) and self.rollouts is None:
             raise VIBConfigError(
                 "`--window` sets the stop's window with its threshold from rollouts: give `--rollouts=`."
@@ -485,6 +496,7 @@ def gamma_from_rollouts(
     episodes: str = "all",
     or_traces: dict[str, list[np.ndarray]] | None = None,
     or_window: int = 1,
+    or_margin: float = 1.0,
 ) -> CalibrationConfig:
     """`calibration` with gamma = the split-conformal threshold on clean rollouts' per-episode max u of the
     score the checkpoint reads u from (`expected_score`); with `threshold="time_band"` or `"std_band"`, a
@@ -497,7 +509,8 @@ def gamma_from_rollouts(
     u aggregated over the last `window` steps (failure.windowed), from the per-step `traces`. `and_traces`
     ({score: per-step u of each rollout}) adds an AND: each score's threshold, conformal at `alpha` on its
     windowed maxima, into `and_gammas`. `or_traces` adds an OR instead: each score's threshold on its maxima
-    over `or_window` steps into `or_gammas`, and every threshold, gamma's included, at alpha / k for k members.
+    over `or_window` steps into `or_gammas`, and every threshold, gamma's included, at alpha / k for k members,
+    the partners' at `or_margin` times theirs.
     `episodes="successes"` sets every threshold on the successful rollouts only (failure prediction's
     calibration)."""
     if and_traces and or_traces:
@@ -570,6 +583,7 @@ def gamma_from_rollouts(
                              window_aggregate)  # fmt: skip
     or_gammas = _and_gammas(calibration, info, or_traces or {}, score, len(scores), member_alpha, source, or_window,
                             window_aggregate, flag="--or_scores")  # fmt: skip
+    or_gammas = {name: or_margin * g for name, g in or_gammas.items()}
     is_band = threshold in BANDS
     needed = conformal_min_scores(member_alpha) * (2 if is_band else 1)
     if len(scores) < needed:
@@ -625,6 +639,7 @@ def gamma_from_rollouts(
         and_gammas=and_gammas,
         or_gammas=or_gammas,
         or_window=or_window,
+        or_margin=or_margin,
     )
 
 
@@ -759,6 +774,7 @@ def _calibrate_on_rollouts(cfg: CalibrateConfig) -> CalibrationConfig:
         episodes=cfg.rollout_episodes,
         or_traces=or_traces,
         or_window=cfg.or_window,
+        or_margin=cfg.or_margin,
     )
     policy = VIBPolicy.from_pretrained(source, config=cfg.policy)
     preprocessor, _ = make_pre_post_processors(policy.config, pretrained_path=str(source))
@@ -779,6 +795,7 @@ def _calibrate_on_rollouts(cfg: CalibrateConfig) -> CalibrationConfig:
         + (
             f"; OR {', '.join(f'{k} above {g:.4g}' for k, g in calibration.or_gammas.items())}, every threshold at "
             f"alpha / {len(calibration.or_gammas) + 1}"
+            + (f", the OR's at {cfg.or_margin:g} times theirs" if cfg.or_margin != 1 else "")
             if calibration.or_gammas
             else ""
         )

@@ -5,7 +5,8 @@ Per scored VIB row whose cells hold every score (`--calibrate=true`):
 1. validation: each training seed's validation rollouts at the row's chosen run time, clean and (with
    `--failure_validation`) under every perturbed condition. Every candidate monitor the policy's stop can run
    (failure.candidate_monitors and failure.or_candidates over the scores the cells hold: each score alone, an
-   AND with constant partners, an OR with a constant partner) is calibrated on that seed's successful clean
+   AND with constant partners, an OR with constant partners, at a margin over their conformal thresholds) is
+   calibrated on that seed's successful clean
    ones at `alpha` and judged on all of them, averaged over the seeds. What ships (`ship_rule`): among the
    monitors that meet the TPR, TNR and benign-stop targets on validation, the one that alarms earliest in
    failures; with none meeting them, the best balanced accuracy. Balanced accuracy alone does not ask when a
@@ -72,6 +73,8 @@ PUBLISHED = [
 ]
 TARGETS = {"tpr": 0.90, "tnr": 0.90, "detection_time": 0.30, "benign_stopped": 0.10}
 ROLLOUT_RND = "embedding_rnd_rollouts"  # the embedding RND fitted on clean validation rollouts
+# ORs of two and of three scores, their partners at 1, 2 or 4 times their conformal thresholds (failure.AnyOf)
+OR_SIZES, OR_MARGINS = (2, 3), (1.0, 2.0, 4.0)
 
 
 def cell_episodes(cell: dict) -> list[Episode]:
@@ -239,10 +242,18 @@ def ship_rule(ranking: list[dict]) -> tuple[Monitor | AnyOf, str]:
     return ranking[0]["monitor"], BEST_BALANCED
 
 
-def failure_prediction(cfg, cells: dict, runtime_of, thresholds: Sequence[str] = THRESHOLDS) -> dict:
+def failure_prediction(
+    cfg,
+    cells: dict,
+    runtime_of,
+    thresholds: Sequence[str] = THRESHOLDS,
+    or_sizes: Sequence[int] = OR_SIZES,
+    or_margins: Sequence[float] = OR_MARGINS,
+) -> dict:
     """results["failure_prediction"]: per scored row, the validation ranking, the shipped monitor and its test
     metrics. `runtime_of(variant, seed)`: the row's chosen run time at that training seed. `thresholds`: the
-    kinds of threshold the candidates may have (failure.THRESHOLDS)."""
+    kinds of threshold the candidates may have (failure.THRESHOLDS); `or_sizes`, `or_margins`: the ORs among
+    them (failure.or_candidates)."""
     out = {}
     cells = dict(cells)
     for variant in cfg.variants:
@@ -275,7 +286,10 @@ def failure_prediction(cfg, cells: dict, runtime_of, thresholds: Sequence[str] =
             }
             continue
         names = sorted(set.intersection(*[set(e.scores) for eps in validation.values() for e in eps]))
-        candidates = [*candidate_monitors(names, thresholds=thresholds), *or_candidates(names, thresholds=thresholds)]
+        candidates = [
+            *candidate_monitors(names, thresholds=thresholds),
+            *or_candidates(names, thresholds=thresholds, sizes=or_sizes, margins=or_margins),
+        ]
         # The policy's stop runs any candidate with a constant threshold on its partners (an AND's or an OR's
         # first score may have a band): `lerobot-vib-calibrate --rollouts --window --and_scores|--or_scores` sets
         # it. The RND fitted on rollouts is measured beside them, not shipped: the policy's stop reads the RND
@@ -331,6 +345,8 @@ def failure_prediction(cfg, cells: dict, runtime_of, thresholds: Sequence[str] =
             },
             "uncalibrated_seeds": uncalibrated,
             "candidates": len(runnable),
+            "or_sizes": list(or_sizes),
+            "or_margins": list(or_margins),
             "ranking": [{**r, "monitor": r["monitor"].as_dict(), "name": r["monitor"].name} for r in ranking[:15]],
             "shipped": {
                 "monitor": shipped.as_dict(),
@@ -367,6 +383,7 @@ def ship_command(monitor: Monitor | AnyOf, alpha: float) -> str:
     if isinstance(monitor, AnyOf):
         others = monitor.members[1:]
         partners += f" --or_scores='[{','.join(o.scores[0] for o in others)}]' --or_window={others[0].window}"
+        partners += f" --or_margin={monitor.margin:g}" if monitor.margin != 1 else ""
     return (
         f"To ship it on a checkpoint: evaluate clean rollouts of the calibrated checkpoint with `lerobot-vib-eval "
         f"--policy.uncertainty_score={m.scores[0]}` (the stop off; it records every score's u), then "
@@ -419,12 +436,15 @@ def markdown(cfg, failure: dict, labels: dict[str, str]) -> list[str]:
         test = result["test"] or {}
         pooled = test.get("pooled") or {}
         rule = result["shipped"].get("rule", BEST_BALANCED)
+        sizes = " or ".join(map(str, result.get("or_sizes", [2])))
+        margins = ", ".join(f"{c:g}" for c in result.get("or_margins", [1]))
         lines += [
             f"The shipped monitor is **{result['shipped']['name']}** at alpha = {cfg.alpha}: among "
-            f"{result['candidates']} candidates (each score alone, every AND of two and every OR of two; "
-            "windows 1, 5, 10 steps; mean or sum; a constant threshold or a time-varying band, proportional to "
-            "the mean or FAIL-Detect's mean + q standard deviations, the band on the first score only, as the "
-            "policy's stop runs them; an OR's k members each at alpha / k), "
+            f"{result['candidates']} candidates (each score alone, every AND of two and every OR of {sizes}; "
+            "windows 1, 5, 10 steps; mean or sum; a constant threshold or a time-varying band, proportional to the "
+            "mean or FAIL-Detect's mean + q standard deviations, the band on the first score only, as the policy's "
+            "stop runs them; an OR's k members each at alpha / k, its partners over one window at "
+            f"{margins} times their conformal thresholds), "
             + (
                 "the one that alarms earliest in failed episodes among those with TPR and TNR >= 0.9 and at most "
                 "10% of successful noise and colour-jitter rollouts alarmed"
@@ -529,7 +549,8 @@ def _targets(test: dict) -> list[str]:
         ("median lead time > 0", pooled.get("median_lead_time"), lambda x: x > 0),
         ("benign successes stopped <= 10%", test.get("benign_stopped"), lambda x: x <= TARGETS["benign_stopped"]),
     ]
-    return [f"{name}: {'met' if v is not None and ok(v) else 'not met'} ({_f(v)})" for name, v, ok in checks]
+    # three decimals: a rate just under its target must not print as the target itself
+    return [f"{name}: {'met' if v is not None and ok(v) else 'not met'} ({_f(v, '.3f')})" for name, v, ok in checks]
 
 
 def plot(failure: dict, out: Path, labels: dict[str, str]) -> list[str]:
