@@ -19,10 +19,11 @@ benign-stop targets there, else the best balanced accuracy), and its metrics are
 chose nothing. The RND fitted on clean rollouts needs embeddings, which are not committed; it is left out of
 both runs alike (it never ships).
 
-    B=benchmarks/results
+    B=benchmarks/results N=benchmarks/results/tokens_narrow
     python benchmarks/failure_ors.py \
         $B/tokens_act_trunk_l2_s1000_cpu_2core,$B/tokens_act_trunk_l2_3seeds_cpu_2core:vib_tokens_narrow_act_trunk_l2 \
-        $B/tokens_act_trunk_l3_3seeds_cpu_2core:vib_tokens_narrow_act_trunk_l3 \
+        $B/tokens_act_trunk_l3_2seeds_cpu_2core,$B/tokens_act_trunk_l3_3seeds_cpu_2core:vib_tokens_narrow_act_trunk_l3 \
+        ${N}_2seeds_cpu_2core,${N}_3seeds_cpu_2core,${N}_s3000_cpu_2core:vib_tokens_narrow \
         $B/tokens_l2_colour_s1000_cpu_2core:vib_tokens_narrow_act_trunk_l2_colour \
         --output benchmarks/results/failure_ors_cpu_2core/report.md
 """
