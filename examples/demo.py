@@ -1,22 +1,25 @@
 """The main job on an embedded default: the simulated 6-DoF arm, with LeRobot's own commands.
 
-1. record scripted grasps of a block in the arm's `near` workspace (`lerobot-vib-record-sim`, 96x128, no Hub),
-2. train VIB on them with the arm preset, shortened (`lerobot-train --config_path=configs/policy/vib_arm_sim.json`),
-   its normalization floor on the action only (chosen at this budget on validation seeds:
-   benchmarks/results/floor_choice_demo_budget_cpu_2core/report.md),
+1. record scripted grasps of a block in the arm's `near` workspace (`lerobot-vib-record-sim`, 48x64, no Hub),
+2. train VIB's token network on them (`lerobot-train --config_path=configs/policy/vib_arm_sim.json
+   --policy.encoder=tokens ...`, 3000 steps): the bottleneck on ACT's token memory, one token per cell of the
+   trunk's 6x8 feature map. At 48x64 a training step costs about a third of one at the preset's 96x128, and
+   this recipe was chosen over the pooled preset at the same training time on validation seeds
+   (benchmarks/results/demo_recipe_48x64_cpu_2core/README.md),
 3. calibrate its uncertainty on the training episodes (`lerobot-vib-calibrate`: every score's training mean),
 4. roll it out on 20 clean episodes with LeRobot's eval loop, the stop off, recording u per step
    (`lerobot-vib-eval --env.type=vib_arm`),
-5. set the stop threshold on those rollouts (`lerobot-vib-calibrate --rollouts=... --conformal_alpha`): a
-   time-indexed band, one threshold per episode step, such that at most 10% of clean rollouts should stop,
+5. set the stop threshold on those rollouts (`lerobot-vib-calibrate --rollouts=... --conformal_alpha
+   --threshold=std_band`): FAIL-Detect's time-indexed band on RND over the observation embedding, one
+   threshold per episode step, such that at most 10% of clean rollouts should stop,
 6. trace u step by step in one rollout with a board in front of the camera and the stop on
    (`examples/rollout_uncertainty.py`: trace.csv, summary.json, trace.png).
 
 Each command is printed before it runs; everything goes to outputs/demo/. Interrupted, it resumes: a step whose
 result is already there is skipped, and training continues from its last checkpoint. The full preset (7000
-steps, about 41 minutes on 2 cores) is in docs/arm.md; ALOHA's walk-through is in docs/aloha.md.
+steps at 96x128, about 41 minutes on 2 cores) is in docs/arm.md; ALOHA's walk-through is in docs/aloha.md.
 
-    python examples/demo.py [--episodes 50] [--steps 2000] [--device cpu]
+    python examples/demo.py [--episodes 50] [--steps 3000] [--device cpu]
 """
 
 from __future__ import annotations
@@ -34,9 +37,15 @@ BIN = Path(sys.executable).parent
 PRESET = ROOT / "configs" / "policy" / "vib_arm_sim.json"
 REPO_ID = "local/vib_arm_grasp_block_scripted"
 ROLLOUTS, ALPHA = 20, 0.1  # the time-indexed band at alpha = 0.1 needs at least 18 clean rollouts
-# At the demo's 2000 steps the floor on the action only solved 9/20 validation episodes, the preset's floor on
-# every feature 4/20 (benchmarks/floor_choice.py); the 7000-step preset keeps its floor on every feature.
-FLOOR = "--policy.normalization_floor_features=action"
+# The token network as the token preset starts it (narrow posteriors, z sampled when acting), on the preset's
+# other fields; its floor stays on every feature, which the token network's floor choice kept at 2000 steps
+# (benchmarks/results/floor_choice_tokens_demo_budget_cpu_2core/report.md).
+TOKENS = ["--policy.encoder=tokens", "--policy.posterior_logvar_init=-6.0", "--policy.sample_latent_at_inference=true"]
+IMAGE = ["--image_height=48", "--image_width=64"]  # the trunk's map is 6x8 cells
+# The stop's score and threshold, chosen for this recipe on validation rollouts by the default score's rule:
+# RND on the observation embedding with FAIL-Detect's band stopped 20/40 occlusions within 5 steps at 1/40 clean
+# stops (benchmarks/results/demo_recipe_48x64_cpu_2core/score_choice.md).
+SCORE, THRESHOLD = "embedding_rnd", "std_band"
 OCCLUDE = "30:60"  # the board is in front of the camera from step 30 to 59, as in the paper's Fig. 3c
 
 
@@ -64,7 +73,7 @@ def trained_steps(train_dir: Path) -> int:
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--episodes", type=int, default=50)
-    parser.add_argument("--steps", type=int, default=2000)
+    parser.add_argument("--steps", type=int, default=3000)
     parser.add_argument("--device", default="cpu")
     parser.add_argument("--out", type=Path, default=Path("outputs/demo"))
     args = parser.parse_args()
@@ -73,7 +82,7 @@ def main() -> None:
     start = time.time()
 
     data = args.out / "data"
-    record = [BIN / "lerobot-vib-record-sim", "--task=grasp_block", "--workspace=near"]
+    record = [BIN / "lerobot-vib-record-sim", "--task=grasp_block", "--workspace=near", *IMAGE]
     record += [f"--num_episodes={args.episodes}", f"--root={data}"]
     if (data / "meta" / "scripted_recording.json").exists():
         record.append("--resume=true")  # keeps what an earlier run recorded, finishes what it did not
@@ -88,7 +97,8 @@ def main() -> None:
             train += [f"--config_path={config}", "--resume=true"]
         else:
             train += [f"--config_path={PRESET}", f"--dataset.root={data}", f"--output_dir={train_dir}"]
-            train += [FLOOR, f"--policy.device={args.device}", f"--save_freq={max(args.steps // 3, 1)}"]
+            train += [*TOKENS, f"--policy.uncertainty_score={SCORE}", f"--policy.device={args.device}"]
+            train += [f"--save_freq={max(args.steps // 3, 1)}"]
         train += [f"--steps={args.steps}", "--log_freq=100"]
         run(train)
 
@@ -125,6 +135,7 @@ def main() -> None:
             f"--policy.path={ckpt}",
             f"--rollouts={eval_dir / 'uncertainty_info.json'}",
             f"--conformal_alpha={ALPHA}",
+            f"--threshold={THRESHOLD}",
             "--in_place=true",  # the calibrated copy written above
         ]
     )
@@ -162,9 +173,11 @@ def main() -> None:
         f"Occluded rollout (board over steps {OCCLUDE}, stop on): mean u {trace['mean_u_clean']:.2f} on clean "
         f"steps, {trace['mean_u_occluded']:.2f} under the board; stops: {stops or 'none'}; "
         f"{'grasped' if trace.get('success') else 'not grasped'}. Picture: {trace_dir / 'trace.png'}\n"
-        f"\nNext: train the full preset (about 41 min on 2 cores, docs/arm.md):\n"
-        f"  lerobot-train --config_path={PRESET.relative_to(ROOT)} --dataset.root={data} "
-        "--output_dir=outputs/train/vib_arm"
+        f"\nNext: the token preset at 96x128, 97% of clean test episodes over three training seeds (81 min for its "
+        "7000 steps on 2 cores, docs/arm.md):\n"
+        "  lerobot-vib-record-sim --task=grasp_block --workspace=near --num_episodes=50 --root=data/arm_near\n"
+        "  lerobot-train --config_path=configs/policy/vib_arm_tokens.json --dataset.root=data/arm_near "
+        "--output_dir=outputs/train/vib_arm_tokens"
     )
 
 
