@@ -68,6 +68,14 @@ def main() -> None:
     p.add_argument(
         "--clean_episodes", type=int, default=40, help="clean ones: half set each threshold (a band needs 18)"
     )
+    p.add_argument(
+        "--policy_flag",
+        dest="policy_flags",
+        action="append",
+        default=[],
+        help="a run-time override for the rollouts, as --policy_flag=--policy.temporal_ensemble_coeff=3.0",
+    )
+    p.add_argument("--tag", default="", help="a suffix for the rollouts' folders, for a set of --policy_flag")
     p.add_argument("--output", type=Path, default=None)
     args = p.parse_args()
 
@@ -85,9 +93,10 @@ def main() -> None:
         occluded = ["--env.perturbation.occlusion=true"]
         kinds = {"clean": ([], args.clean_episodes), "occlusion": (occluded, args.episodes)}
         for name, (flags, episodes) in kinds.items():
-            out = base / f"score_{name}_{args.val_seed}_{episodes}"
+            out = base / f"score_{name}_{args.val_seed}_{episodes}{args.tag}"
             run(
-                [str(BIN / "lerobot-vib-eval"), f"--policy.path={ckpt}", "--policy.device=cpu", "--env.type=vib_arm",
+                [str(BIN / "lerobot-vib-eval"), f"--policy.path={ckpt}", "--policy.device=cpu", *args.policy_flags,
+                 "--env.type=vib_arm",
                  f"--env.dataset_root={args.dataset_root}", *flags, f"--eval.n_episodes={episodes}",
                  "--eval.batch_size=10", "--eval.use_async_envs=false", f"--seed={args.val_seed}",
                  f"--output_dir={out}"],
