@@ -114,6 +114,8 @@ def main() -> None:
                     total[key] += row[key]
     allowed = {k: v for k, v in pooled.items() if v["false_stops"] <= MAX_FALSE * v["clean_episodes"]}
     order = list(pooled)
+    if not allowed:
+        sys.exit(f"No score and threshold stops at most {MAX_FALSE:.0%} of the judged clean rollouts: none to choose.")
     chosen = max(allowed, key=lambda k: (allowed[k]["in_time"], -allowed[k]["false_stops"], -order.index(k)))
     lines = [
         "# The demo's stop score, chosen on validation rollouts",
