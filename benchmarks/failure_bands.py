@@ -40,7 +40,7 @@ from types import SimpleNamespace
 from lerobot_vib.failure import THRESHOLDS
 from lerobot_vib.scripts.benchmark import PERTURBED, VALIDATION
 from lerobot_vib.scripts.benchmark_report import runtime_of
-from lerobot_vib.scripts.failure_report import failure_prediction
+from lerobot_vib.scripts.failure_report import failure_prediction, margin_lines
 from lerobot_vib.sim.perturbations import CONDITIONS
 
 # label: failure_prediction's candidate set; ORs of two at their conformal thresholds, as when this ran first
@@ -104,6 +104,8 @@ def compare(folders: list[Path], variant: str, alpha: float, offered: dict = OFF
                 "candidates": result["candidates"],
                 "shipped": result["shipped"]["name"],
                 "rule": result["shipped"]["rule"],
+                "margin": result["shipped"].get("margin", 0.0),
+                "margin_cross_validation": result.get("margin_cross_validation") or [],
                 "validation": result["shipped"]["validation"],
                 "test": test.get("pooled"),
                 "per_seed": test.get("per_seed"),
@@ -150,6 +152,8 @@ def markdown(
                 continue
             t, v = r["test"] or {}, r["validation"]
             rule = "earliest meeting the targets" if r["rule"].startswith("the earliest") else "best balanced"
+            if r.get("margin"):
+                rule += f" with {r['margin']:g} to spare"
             seeds = ", ".join(
                 f"{s}: {_f(m.get('tpr'))} / {_f(m.get('tnr'))}" for s, m in sorted((r["per_seed"] or {}).items())
             )
@@ -162,6 +166,9 @@ def markdown(
                 f"{benign} | {seeds} |"
             )
         lines.append("")
+        for r in rows:
+            if r.get("margin_cross_validation"):
+                lines += [f"{r['offered']}:", *margin_lines(r["margin_cross_validation"], r["margin"]), ""]
         shown = next((r for r in rows if "validation_episodes" in r), None)
         if shown:
             per_seed = ", ".join(f"{s}: {n}" for s, n in sorted(shown["validation_episodes"].items()))

@@ -406,3 +406,82 @@ def test_an_rnd_fitted_on_clean_rollouts_sees_half_the_successes_and_reads_a_new
     episodes = failure_report.cell_episodes(out[key])
     assert [failure_report.ROLLOUT_RND in e.fitted_on for e in episodes[:4]] == [True, False, True, False]
     assert "fitted_on" not in cells[key]  # the cells given are left as they are
+
+
+def _judged(per_group: dict[str, list[tuple[float, float, float]]]) -> list[dict]:
+    """judge_candidates-style rows from (TPR, TNR, detection time) per group, 100 failures and 100 successes
+    per group, no benign successes alarmed."""
+    from lerobot_vib.failure import FailureMetrics
+
+    def metrics(tpr: float, tnr: float, detection: float) -> tuple:
+        hits = round(100 * tpr)
+        return FailureMetrics(100, 100, hits, round(100 * (1 - tnr)), [detection] * hits, []), FailureMetrics(
+            0, 10, 0, 0, [], []
+        )
+
+    return [
+        {"monitor": Monitor((name,)), "order": i, "groups": {g: metrics(*m) for g, m in zip("ABC", rows, strict=True)}}
+        for i, (name, rows) in enumerate(per_group.items())
+    ]
+
+
+def test_a_monitor_that_meets_the_targets_by_luck_on_two_seeds_and_misses_on_the_third_buys_the_rule_a_margin():
+    from lerobot_vib.scripts.failure_report import cross_validated_margin
+
+    judged = _judged(
+        {
+            "safe": [(0.97, 0.97, 0.50)] * 3,
+            "edge": [(0.97, 0.93, 0.10), (0.97, 0.93, 0.10), (0.97, 0.70, 0.10)],  # 0.93 on A and B, 0.70 on C
+        }
+    )
+    margin, table = cross_validated_margin(judged, margins=(0.0, 0.02, 0.05))
+    by_margin = {r["margin"]: r for r in table}
+    # margin 0: chosen on A and B, "edge" ships and alarms on 30% of C's successes; pooled TNR (97+97+70)/300
+    assert by_margin[0.0]["picked"] == {"A": "safe, w=1 mean, constant", "B": "safe, w=1 mean, constant",
+                                        "C": "edge, w=1 mean, constant"}  # fmt: skip
+    assert by_margin[0.0]["tnr"] == pytest.approx(0.88)
+    assert by_margin[0.02]["tnr"] == pytest.approx(0.88)  # 0.93 clears 0.92 too
+    assert by_margin[0.05]["tnr"] == pytest.approx(0.97)  # "edge" must clear 0.95 now: "safe" everywhere
+    assert margin == 0.05
+
+
+def test_a_monitor_that_meets_the_targets_on_every_held_out_seed_keeps_the_rule_without_a_margin():
+    from lerobot_vib.scripts.failure_report import cross_validated_margin
+
+    judged = _judged({"safe": [(0.97, 0.97, 0.50)] * 3, "early": [(0.93, 0.93, 0.10)] * 3})
+    margin, table = cross_validated_margin(judged, margins=(0.0, 0.05))
+    assert margin == 0.0 and table[0]["detection_time"] == pytest.approx(0.10)
+    assert table[1]["detection_time"] == pytest.approx(0.50)  # a margin only made the alarm later
+    # with one training seed nothing can be held out
+    one = [{**r, "groups": {"A": r["groups"]["A"]}} for r in judged]
+    assert cross_validated_margin(one, margins=(0.0, 0.05)) == (0.0, [])
+
+
+def test_a_margin_asks_every_target_for_room():
+    from lerobot_vib.scripts.failure_report import meets_targets
+
+    row = {"tpr": 0.93, "tnr": 0.93, "benign_stopped": 0.06}
+    assert meets_targets(row) and meets_targets(row, 0.03)
+    assert not meets_targets(row, 0.05)  # TPR and TNR 0.93 < 0.95
+    assert not meets_targets({**row, "benign_stopped": 0.09}, 0.02)  # 0.09 > 0.10 - 0.02
+
+
+def test_the_report_chooses_the_ship_rules_margin_on_held_out_seeds_and_prints_each_margins_figures():
+    from lerobot_vib.scripts import failure_report
+
+    rng = np.random.default_rng(5)
+    cfg = _report_config([1000, 2000, 3000])
+    cells = {}
+    for seed in cfg.train_seeds:
+        cells[("vib_tokens", "validation", seed, "act:0.3")] = _scripted_cell(rng, "validation", 40, 4, 400_000)
+        cells[("vib_tokens", "normal", seed, None)] = _scripted_cell(rng, "normal", 20, 3, 600_000)
+    result = failure_report.failure_prediction(cfg, cells, lambda v, s: "act:0.3")["vib_tokens"]
+    table = result["margin_cross_validation"]
+    assert [r["margin"] for r in table] == list(failure_report.SHIP_MARGINS)
+    assert all(set(r["picked"]) == {"1000", "2000", "3000"} for r in table)
+    # "b" separates every seed's failures: no margin is needed, and the smallest is the earliest that meets them
+    assert result["shipped"]["margin"] == 0.0 and table[0]["tpr"] == 1.0
+    lines = failure_report.markdown(cfg, {"vib_tokens": result}, {})
+    assert any(line.startswith("| 0 (shipped) | 1.00 |") for line in lines)
+    only = failure_report.failure_prediction(_report_config([1000]), cells, lambda v, s: "act:0.3")["vib_tokens"]
+    assert only["margin_cross_validation"] == [] and only["shipped"]["margin"] == 0.0

@@ -402,43 +402,55 @@ def evaluate(calibrated: CalibratedMonitor | CalibratedAnyOf, episodes: Sequence
     return FailureMetrics(len(failed), len(succeeded), alarmed_failed, alarmed_succeeded, detection, lead)
 
 
-def choose_monitor(
+def judge_candidates(
     candidates: Sequence[Monitor | AnyOf],
     validation: dict[object, Sequence[Episode]],
     alpha: float,
     benign: Sequence[str] = (),
-) -> tuple[Monitor | AnyOf | None, list[dict]]:
-    """The candidate with the best balanced accuracy on the validation rollouts, averaged over the groups of
-    `validation` (one per training seed, each calibrated on its own successful clean rollouts); a tie goes to
-    the earlier detection, then to the one listed first. A monitor is judged on the rollouts its scores were not
-    fitted on. A group without a failed rollout has no TPR but must still calibrate: the balanced accuracy is the
-    mean TPR over the groups with failures and the mean TNR over every group, so that a seed which solves every
-    validation episode neither hides the others' failures nor its own false alarms. Returns it (None: none could
-    be calibrated, or no group failed) and every candidate's row, best first; a row's "benign_stopped" is the
-    share of successful rollouts under the `benign` conditions it alarms on. Only validation rollouts are read."""
+) -> list[dict]:
+    """Each candidate calibrated per group of `validation` (one per training seed, on that group's own
+    successful clean rollouts) and judged on the group's rollouts its scores were not fitted on: one row per
+    candidate that calibrates in every group, {"monitor", "order", "groups": {group: (metrics on every judged
+    rollout, metrics on its successes under the `benign` conditions)}}. `rank` turns the rows into a ranking
+    over any subset of the groups, so that a rule can be checked on a group it did not choose on."""
     rows = []
     for i, monitor in enumerate(candidates):
-        per_group, benign_groups = [], []
-        for episodes in validation.values():
+        groups = {}
+        for group, episodes in validation.items():
             try:
                 calibrated = calibrate_monitor(monitor, episodes, alpha)
-                judged = unseen_by(episodes, monitor.scores)
-                per_group.append(evaluate(calibrated, judged))
-                benign_groups.append(evaluate(calibrated, [e for e in judged if e.success and e.condition in benign]))
             except CalibrationError:
-                per_group = []
                 break
-        tprs = [m.tpr for m in per_group if m.tpr is not None]
-        tnrs = [m.tnr for m in per_group if m.tnr is not None]
+            judged = unseen_by(episodes, monitor.scores)
+            groups[group] = (
+                evaluate(calibrated, judged),
+                evaluate(calibrated, [e for e in judged if e.success and e.condition in benign]),
+            )
+        else:
+            rows.append({"monitor": monitor, "order": i, "groups": groups})
+    return rows
+
+
+def rank(judged: Sequence[dict], groups: Sequence[object] | None = None) -> list[dict]:
+    """`judge_candidates`' rows aggregated over `groups` (default: all), best balanced accuracy first; a tie goes
+    to the earlier detection, then to the one listed first. The balanced accuracy is the mean TPR over the
+    groups with failures and the mean TNR over every group, so that a seed which solves every validation
+    episode neither hides the others' failures nor its own false alarms; a row's "benign_stopped" is the mean
+    share of benign successes alarmed. A candidate with no TPR or no TNR over the groups is left out."""
+    rows = []
+    for row in judged:
+        chosen = [row["groups"][g] for g in (row["groups"] if groups is None else groups)]
+        tprs = [m.tpr for m, _ in chosen if m.tpr is not None]
+        tnrs = [m.tnr for m, _ in chosen if m.tnr is not None]
         if not tprs or not tnrs:
             continue
         tpr, tnr = float(np.mean(tprs)), float(np.mean(tnrs))
-        detection = [m.detection_time for m in per_group if m.detection_time is not None]
-        benign_stopped = [1 - m.tnr for m in benign_groups if m.tnr is not None]
+        detection = [m.detection_time for m, _ in chosen if m.detection_time is not None]
+        benign_stopped = [1 - b.tnr for _, b in chosen if b.tnr is not None]
         rows.append(
             {
-                "monitor": monitor,
-                "order": i,
+                "monitor": row["monitor"],
+                "order": row["order"],
                 "balanced_accuracy": (tpr + tnr) / 2,
                 "tpr": tpr,
                 "tnr": tnr,
@@ -447,4 +459,17 @@ def choose_monitor(
             }
         )
     rows.sort(key=lambda r: (-r["balanced_accuracy"], r["detection_time"], r["order"]))
+    return rows
+
+
+def choose_monitor(
+    candidates: Sequence[Monitor | AnyOf],
+    validation: dict[object, Sequence[Episode]],
+    alpha: float,
+    benign: Sequence[str] = (),
+) -> tuple[Monitor | AnyOf | None, list[dict]]:
+    """The candidate with the best balanced accuracy on the validation rollouts, averaged over the groups of
+    `validation` (`judge_candidates`, `rank`). Returns it (None: none could be calibrated, or no group failed)
+    and every candidate's row, best first. Only validation rollouts are read."""
+    rows = rank(judge_candidates(candidates, validation, alpha, benign))
     return (rows[0]["monitor"] if rows else None), rows

@@ -56,8 +56,10 @@ from ..failure import (
     candidate_monitors,
     choose_monitor,
     evaluate,
+    judge_candidates,
     monitor_from_dict,
     or_candidates,
+    rank,
 )
 
 VALIDATION = "validation"
@@ -214,32 +216,87 @@ def _pool(metrics: list[FailureMetrics]) -> FailureMetrics:
 
 EARLIEST = "the earliest on validation among those meeting the TPR, TNR and benign-stop targets there"
 BEST_BALANCED = "the best balanced accuracy on validation"
+# How far inside the targets a monitor must be on validation to ship (TPR and TNR >= 0.9 + m, benign stops
+# <= 0.1 - m). The earliest of thousands of candidates that just meet a target on a few hundred rollouts meets
+# it by luck as often as not; a margin asks for room. Which margin: `cross_validated_margin`.
+SHIP_MARGINS = (0.0, 0.02, 0.05)
 
 
-def earliest_meeting_targets(ranking: list[dict]) -> Monitor | AnyOf | None:
-    """Of `choose_monitor`'s rows, the monitor that alarms earliest in failures among those meeting the TPR, TNR
-    and benign-stop targets on validation (ties: the better balanced accuracy, then the order listed); None if
-    none meets them. A row without benign rollouts is judged on TPR and TNR alone."""
-    meets = [
-        r
-        for r in ranking
-        if r["tpr"] >= TARGETS["tpr"]
-        and r["tnr"] >= TARGETS["tnr"]
-        and (r.get("benign_stopped") is None or r["benign_stopped"] <= TARGETS["benign_stopped"])
-    ]
+def meets_targets(row: dict, margin: float = 0.0) -> bool:
+    """Whether a ranking row meets the TPR, TNR and benign-stop targets with `margin` to spare; a row without
+    benign rollouts is judged on TPR and TNR alone."""
+    benign = row.get("benign_stopped")
+    return (
+        row["tpr"] >= TARGETS["tpr"] + margin
+        and row["tnr"] >= TARGETS["tnr"] + margin
+        and (benign is None or benign <= TARGETS["benign_stopped"] - margin)
+    )
+
+
+def earliest_meeting_targets(ranking: list[dict], margin: float = 0.0) -> Monitor | AnyOf | None:
+    """Of `choose_monitor`'s rows, the monitor that alarms earliest in failures among those meeting the targets
+    on validation with `margin` to spare (ties: the better balanced accuracy, then the order listed); None if
+    none does."""
+    meets = [r for r in ranking if meets_targets(r, margin)]
     if not meets:
         return None
     return min(meets, key=lambda r: (r["detection_time"], -r["balanced_accuracy"], r["order"]))["monitor"]
 
 
-def ship_rule(ranking: list[dict]) -> tuple[Monitor | AnyOf, str]:
+def ship_rule(ranking: list[dict], margin: float = 0.0) -> tuple[Monitor | AnyOf, str]:
     """The monitor that ships, from `choose_monitor`'s rows (best balanced accuracy first), and the rule that
-    picked it: the earliest of those meeting the TPR, TNR and benign-stop targets on validation, else the best
+    picked it: the earliest of those meeting the targets on validation with `margin` to spare, else the best
     balanced accuracy."""
-    earliest = earliest_meeting_targets(ranking)
+    earliest = earliest_meeting_targets(ranking, margin)
     if earliest is not None:
         return earliest, EARLIEST
     return ranking[0]["monitor"], BEST_BALANCED
+
+
+def cross_validated_margin(judged: list[dict], margins: Sequence[float] = SHIP_MARGINS) -> tuple[float, list[dict]]:
+    """The ship rule's margin, chosen by leaving one training seed out of the validation rollouts.
+
+    For each margin and each seed g: the rule picks a monitor on the other seeds' validation rollouts, and that
+    monitor is judged on g's (calibrated on g's own successful clean rollouts, as it would be shipped there).
+    Pooled over the held-out seeds, the margins whose monitors still meet the targets are kept, and the one
+    whose monitors alarm earliest wins (a tie: the smaller margin); with none kept, the best held-out balanced
+    accuracy. So the margin is what a rule needed to meet the targets on a seed it had not seen, and the test
+    seeds choose nothing. With one seed nothing can be held out: the smallest margin, and no rows.
+    `judged`: failure.judge_candidates' rows. Returns the margin and one row per margin."""
+    groups = list(judged[0]["groups"]) if judged else []
+    if len(groups) < 2:
+        return margins[0], []
+    table = []
+    for margin in margins:
+        held, held_benign, picked = [], [], {}
+        for g in groups:
+            ranking = rank(judged, [h for h in groups if h != g])
+            if not ranking:
+                continue
+            monitor, _ = ship_rule(ranking, margin)
+            row = next(r for r in judged if r["monitor"] == monitor)
+            held.append(row["groups"][g][0])
+            held_benign.append(row["groups"][g][1])
+            picked[str(g)] = monitor.name
+        pooled, benign = _pool(held), _pool(held_benign)
+        table.append(
+            {
+                "margin": margin,
+                "picked": picked,
+                **{k: v for k, v in pooled.as_dict().items() if k != "median_lead_time"},
+                "benign_stopped": None if benign.tnr is None else 1 - benign.tnr,
+                "benign_successes": benign.n_succeeded,
+            }
+        )
+    scored = [r for r in table if r["tpr"] is not None and r["tnr"] is not None]
+    if not scored:
+        return margins[0], table
+    kept = [r for r in scored if meets_targets(r)]
+    if kept:
+        best = min(kept, key=lambda r: (math.inf if r["detection_time"] is None else r["detection_time"], r["margin"]))
+    else:
+        best = max(scored, key=lambda r: (r["balanced_accuracy"], -r["margin"]))
+    return best["margin"], table
 
 
 def failure_prediction(
@@ -249,11 +306,13 @@ def failure_prediction(
     thresholds: Sequence[str] = THRESHOLDS,
     or_sizes: Sequence[int] = OR_SIZES,
     or_margins: Sequence[float] = OR_MARGINS,
+    ship_margins: Sequence[float] = SHIP_MARGINS,
 ) -> dict:
     """results["failure_prediction"]: per scored row, the validation ranking, the shipped monitor and its test
     metrics. `runtime_of(variant, seed)`: the row's chosen run time at that training seed. `thresholds`: the
     kinds of threshold the candidates may have (failure.THRESHOLDS); `or_sizes`, `or_margins`: the ORs among
-    them (failure.or_candidates)."""
+    them (failure.or_candidates); `ship_margins`: the margins the ship rule chooses among
+    (`cross_validated_margin`)."""
     out = {}
     cells = dict(cells)
     for variant in cfg.variants:
@@ -306,14 +365,17 @@ def failure_prediction(
                 "uncalibrated_seeds": uncalibrated,
             }
             continue
-        best, ranking = choose_monitor(runnable, validation, cfg.alpha, benign=BENIGN)
+        judged = judge_candidates(runnable, validation, cfg.alpha, benign=BENIGN)
+        ranking = rank(judged)
+        best = ranking[0]["monitor"] if ranking else None
         if best is None:
             out[variant] = {
                 "error": "no monitor could be calibrated on the validation rollouts' successes",
                 "uncalibrated_seeds": uncalibrated,
             }
             continue
-        shipped, rule = ship_rule(ranking)
+        margin, margin_table = cross_validated_margin(judged, ship_margins)
+        shipped, rule = ship_rule(ranking, margin)
         references = {f"{n} alone": Monitor((n,)) for n in names if Monitor((n,)) != shipped}
         if "low_image_rate" in names:
             references["the stop as shipped today"] = Monitor(("low_image_rate",), threshold="band")
@@ -353,10 +415,12 @@ def failure_prediction(
                 "name": shipped.name,
                 "alpha": cfg.alpha,
                 "rule": rule,
+                "margin": margin,
                 "validation": {
                     k: v for r in ranking if r["monitor"] == shipped for k, v in r.items() if k != "monitor"
                 },
             },
+            "margin_cross_validation": margin_table,
             "test": _test_metrics(shipped, validation, test, cfg.alpha),
             "sweep": {},
             "references": {},
@@ -436,6 +500,7 @@ def markdown(cfg, failure: dict, labels: dict[str, str]) -> list[str]:
         test = result["test"] or {}
         pooled = test.get("pooled") or {}
         rule = result["shipped"].get("rule", BEST_BALANCED)
+        margin = result["shipped"].get("margin", 0.0)
         sizes = " or ".join(map(str, result.get("or_sizes", [2])))
         margins = ", ".join(f"{c:g}" for c in result.get("or_margins", [1]))
         lines += [
@@ -446,8 +511,10 @@ def markdown(cfg, failure: dict, labels: dict[str, str]) -> list[str]:
             "stop runs them; an OR's k members each at alpha / k, its partners over one window at "
             f"{margins} times their conformal thresholds), "
             + (
-                "the one that alarms earliest in failed episodes among those with TPR and TNR >= 0.9 and at most "
-                "10% of successful noise and colour-jitter rollouts alarmed"
+                "the one that alarms earliest in failed episodes among those with TPR and TNR >= "
+                f"{TARGETS['tpr'] + margin:g} and at most {100 * (TARGETS['benign_stopped'] - margin):g}% of "
+                "successful noise and colour-jitter rollouts alarmed"
+                + (f" (the targets with a margin of {margin:g}, chosen below)" if margin else "")
                 if rule == EARLIEST
                 else "none met TPR and TNR >= 0.9 with at most 10% of benign successes alarmed, so the one with "
                 "the best balanced accuracy"
@@ -537,6 +604,31 @@ def markdown(cfg, failure: dict, labels: dict[str, str]) -> list[str]:
                 f"{_f(r['detection_time'] if math.isfinite(r['detection_time']) else None)} | "
                 f"{_f(r.get('benign_stopped'))} |"
             )
+        lines += margin_lines(result.get("margin_cross_validation") or [], margin)
+    return lines
+
+
+def margin_lines(table: list[dict], chosen: float) -> list[str]:
+    """The ship rule's margins as `cross_validated_margin` judged them, on held-out training seeds."""
+    if not table:
+        return []
+    lines = [
+        "",
+        "The ship rule's margin, chosen by leaving one training seed out: for each seed, the rule with that margin "
+        "picks a monitor on the other seeds' validation rollouts, judged on the held-out seed's (calibrated on "
+        "its own successful clean rollouts); pooled over the held-out seeds, the earliest margin whose picks meet "
+        "the targets ships (none meeting them: the best balanced accuracy):",
+        "",
+        "| margin | held-out TPR | TNR | detection time | benign successes alarmed | picked, per held-out seed |",
+        "| --- | --- | --- | --- | --- | --- |",
+    ]
+    for m in table:
+        picked = "; ".join(f"{s}: {name}" for s, name in m["picked"].items())
+        mark = " (shipped)" if m["margin"] == chosen else ""
+        lines.append(
+            f"| {m['margin']:g}{mark} | {_f(m['tpr'])} | {_f(m['tnr'])} | {_f(m['detection_time'])} | "
+            f"{_f(m['benign_stopped'])} of {m['benign_successes']} | {picked} |"
+        )
     return lines
 
 
