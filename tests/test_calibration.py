@@ -347,8 +347,9 @@ def test_an_or_of_scores_sets_every_threshold_gammas_included_at_alpha_over_k():
     traces = [1 + 0.1 * rng.random(30) for _ in range(40)]
     partner = [2 + rng.random(30) for _ in range(40)]
     dataset = CalibrationConfig(dataset_repo_id="local/arm", n_frames=100, rate_mean=2.0, rate_std=0.5,
-                                score_means={"embedding_rnd": 4.0})  # fmt: skip
-    info = {**_rollouts([float(t.max()) for t in traces], 2.0), "score_means": {"rate": 2.0, "embedding_rnd": 4.0}}
+                                score_means={"embedding_rnd": 4.0, "chunk_disagreement": 0.5})  # fmt: skip
+    means = {"rate": 2.0, "embedding_rnd": 4.0, "chunk_disagreement": 0.5}
+    info = {**_rollouts([float(t.max()) for t in traces], 2.0), "score_means": means}
     either = gamma_from_rollouts(dataset, info, 0.1, "r.json", threshold="max", traces=traces,
                                  or_traces={"embedding_rnd": partner}, or_window=5)  # fmt: skip
     assert either.gamma == pytest.approx(conformal_gamma([t.max() for t in traces], 0.05))
@@ -367,6 +368,16 @@ def test_an_or_of_scores_sets_every_threshold_gammas_included_at_alpha_over_k():
     assert wide.gamma == either.gamma and wide.episodes_above_gamma <= either.episodes_above_gamma
     with pytest.raises(VIBConfigError, match="or_margin` must be >= 1"):
         CalibrationConfig(or_gammas={"state_rate": 2.0}, or_margin=0.5)
+    # an OR of three (the preset's shipped failure monitor): the score and both partners each at alpha / 3
+    other = [3 + rng.random(30) for _ in range(40)]
+    three = gamma_from_rollouts(dataset, info, 0.1, "r.json", threshold="max", traces=traces,
+                                or_traces={"embedding_rnd": partner, "chunk_disagreement": other}, or_window=5,
+                                or_margin=4.0)  # fmt: skip
+    assert three.gamma == pytest.approx(conformal_gamma([t.max() for t in traces], 0.1 / 3))
+    assert three.or_gammas == {
+        "embedding_rnd": pytest.approx(4.0 * conformal_gamma([windowed(p, 5).max() for p in partner], 0.1 / 3)),
+        "chunk_disagreement": pytest.approx(4.0 * conformal_gamma([windowed(p, 5).max() for p in other], 0.1 / 3)),
+    }
 
 
 def test_a_threshold_set_on_the_successful_rollouts_ignores_the_failures_and_their_traces():
