@@ -516,7 +516,8 @@ def markdown(cfg, failure: dict, labels: dict[str, str]) -> list[str]:
                 "successful noise and colour-jitter rollouts alarmed"
                 + (f" (the targets with a margin of {margin:g}, chosen below)" if margin else "")
                 if rule == EARLIEST
-                else "none met TPR and TNR >= 0.9 with at most 10% of benign successes alarmed, so the one with "
+                else f"none met TPR and TNR >= {TARGETS['tpr'] + margin:g} with at most "
+                f"{100 * (TARGETS['benign_stopped'] - margin):g}% of benign successes alarmed, so the one with "
                 "the best balanced accuracy"
             )
             + " on the validation rollouts, clean and under every condition ("
